@@ -1,0 +1,94 @@
+"""`vlactl`: the pipeline as Typer subcommands; every config value can also be overridden Hydra-style (key=value).
+
+demos -> train-policy -> collect -> train-probes -> sweep / rollout -> plot
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import List, Optional
+
+import typer
+
+from vlactl.errors import UsageError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Observe and steer vision-language-action policies through their internal representations, in LIBERO.",
+)
+
+OVERRIDES = typer.Argument(None, help="Hydra-style config overrides, e.g. suite=libero_object episodes_per_task=5")
+
+
+def _overrides(extra: list[str] | None, **options) -> list[str]:
+    """Typer options become Hydra overrides; explicit key=value arguments win because they come last."""
+    out = [f"{key}={value}" for key, value in options.items() if value is not None]
+    return out + list(extra or [])
+
+
+@app.command()
+def tasks(suite: Optional[str] = typer.Option(None, "--suite", help="Only this suite.")):
+    """List LIBERO suites, their tasks and instructions."""
+    from vlactl.env.suites import SUITES, n_tasks, task_info
+
+    for name in [suite] if suite else SUITES:
+        count = n_tasks(name)
+        typer.echo(f"{name} ({count} tasks)")
+        for tid in range(count):
+            info = task_info(name, tid)
+            typer.echo(f"  {tid:3d}  {info.instruction}  [{info.n_init_states} init states]")
+
+
+@app.command()
+def demos(
+    overrides: Optional[List[str]] = OVERRIDES,
+    suite: Optional[str] = typer.Option(None, "--suite", help="LIBERO suite, e.g. libero_spatial."),
+    episodes_per_task: Optional[int] = typer.Option(None, "--episodes-per-task"),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Simulator worker processes."),
+    output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+):
+    """Generate scripted-expert demonstrations as a LeRobot v3 dataset (resumable)."""
+    from vlactl.config import load_config
+    from vlactl.data.demos import run_demos
+
+    cfg = load_config(
+        "demos",
+        _overrides(overrides, suite=suite, episodes_per_task=episodes_per_task, workers=workers, output_dir=output_dir),
+    )
+    run_demos(cfg)
+
+
+def _not_yet(stage: str, issue: int):
+    def command(overrides: Optional[List[str]] = OVERRIDES):
+        typer.echo(f"vlactl {stage}: not yet available (tracked in issue #{issue})", err=True)
+        raise typer.Exit(1)
+
+    command.__doc__ = f"[not yet available: issue #{issue}]"
+    return command
+
+
+for _stage, _issue in [
+    ("train-policy", 3),
+    ("collect", 4),
+    ("train-probes", 4),
+    ("sweep", 5),
+    ("rollout", 3),
+    ("plot", 4),
+]:
+    app.command(name=_stage)(_not_yet(_stage, _issue))
+
+
+def main() -> None:
+    try:
+        app(standalone_mode=True)
+    except UsageError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        typer.echo("interrupted; re-run the same command to resume", err=True)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,47 @@
+"""Hydra configs: compose `conf/<stage>.yaml` with user overrides, and save the resolved config with the outputs."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+from hydra.errors import HydraException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from vlactl.errors import UsageError
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+CONF_DIR = Path(os.environ.get("VLACTL_CONF_DIR", REPO_ROOT / "conf"))
+
+
+def load_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
+    """Compose the config of a pipeline stage. Malformed or unknown overrides become a one-line UsageError."""
+    overrides = list(overrides or [])
+    for item in overrides:
+        if "=" not in item:
+            raise UsageError(f"malformed override {item!r}; expected key=value, e.g. suite=libero_object")
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name=stage, overrides=overrides)
+        OmegaConf.resolve(cfg)
+    except (HydraException, OmegaConfBaseException) as exc:
+        first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise UsageError(f"bad override in {overrides}: {first_line}") from None
+    return cfg
+
+
+def save_config(cfg: DictConfig, out_dir: Path, name: str = "config.yaml") -> Path:
+    """Write the resolved config beside a run's outputs (atomically, like every result file)."""
+    from vlactl.io import atomic_write_text
+
+    path = Path(out_dir) / name
+    atomic_write_text(path, OmegaConf.to_yaml(cfg, resolve=True))
+    return path
+
+
+def resolve_path(path: str | Path) -> Path:
+    """Relative paths in configs are relative to the repository root, so commands work from any directory."""
+    path = Path(path).expanduser()
+    return path if path.is_absolute() else REPO_ROOT / path
