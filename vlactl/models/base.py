@@ -1,0 +1,87 @@
+"""The one interface every VLA implements, so that collection, probing and steering never branch on the model.
+
+Vocabulary (TransformerLens-style): a *layer name* such as `backbone.7` or `expert.3` names the residual stream
+after that decoder layer, i.e. the output of that layer, shape [batch, tokens, d]. Each model maps its names to
+modules; `vlactl.models.hooks` reads and writes those outputs through forward hooks, at a *read-out token set*:
+
+- `prefix`  mean over the prompt/prefix tokens (images + text + state) — the default (SPEC.md §2);
+- `last`    the last prefix token;
+- `image`   mean over image tokens only;
+- `text`    mean over text tokens only.
+
+For an action expert's layers the prefix sets are meaningless; there `prefix` means the action (suffix) tokens.
+A forward pass whose tokens hold none of the set (e.g. an autoregressive decode step under `prefix`) has an
+all-False mask: nothing is read and nothing is written there.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+POOLINGS = ("prefix", "last", "image", "text")
+
+
+@dataclass
+class PolicyInput:
+    """One or more observations, in the dataset's conventions (see docs/formats.md).
+
+    images: {"image": uint8 [B, H, W, 3], "wrist_image": uint8 [B, H, W, 3]} upright
+    state: float32 [B, 8] LIBERO state
+    instruction: list of B strings
+    """
+
+    images: dict[str, np.ndarray]
+    state: np.ndarray
+    instruction: list[str]
+
+
+class VLA(ABC):
+    """A vision-language-action policy with observable and controllable layers."""
+
+    name: str
+    chunk_size: int = 1  # actions predicted per forward; a rollout executes `replan_every` of them
+    replan_every: int = 1
+    device: torch.device = torch.device("cpu")
+
+    # --- layers -------------------------------------------------------------------------------------------
+    @abstractmethod
+    def layer_names(self) -> list[str]:
+        """Observable/controllable layers in forward order, e.g. ['backbone.0', ..., 'expert.0', ...]."""
+
+    @abstractmethod
+    def layer_module(self, name: str) -> torch.nn.Module:
+        """The module whose output (a tensor, or a tuple whose first item is one) is that layer's residual stream."""
+
+    @abstractmethod
+    def token_mask(self, name: str, pooling: str) -> torch.Tensor:
+        """Bool [batch, tokens] of the read-out set for the forward currently running through layer `name`."""
+
+    def layer_width(self, name: str) -> int:
+        raise NotImplementedError
+
+    # --- running ----------------------------------------------------------------------------------------
+    @abstractmethod
+    def predict_action_chunk(self, obs: PolicyInput) -> torch.Tensor:
+        """Un-normalised actions [B, chunk_size, 7] in LIBERO's action space ([-1, 1], gripper -1 open / +1 close)."""
+
+    @abstractmethod
+    def encode(self, obs: PolicyInput) -> None:
+        """Run every layer exactly once on these observations (collection and sweeps hook this).
+
+        Hybrids run the prefix, then the action expert once at a fixed flow time; autoregressive models run the
+        prompt forward (prefill) only.
+        """
+
+    def reset(self) -> None:
+        """Forget any per-episode state (action queues, caches)."""
+
+    def eval(self) -> "VLA":
+        return self
+
+    @property
+    def needs_images(self) -> bool:
+        return True
