@@ -1,0 +1,1 @@
+"""Datasets: scripted-expert demonstrations and LeRobot-format reading/writing."""

@@ -1,0 +1,222 @@
+"""A scripted pick-and-place expert for LIBERO, driven by privileged object poses.
+
+It reads the target and destination from the task's BDDL goal (e.g. ['on', 'akita_black_bowl_1', 'plate_1']) and
+runs a small state machine: approach above the grasp point at a travel height that clears the scene, descend,
+close, lift (re-grasp if the object did not come up), carry, lower, open, retreat. Position is servoed with a
+proportional + integral law on the OSC delta-pose action; orientation holds the episode's start orientation, turned
+in yaw so the fingers close across the object's narrow side. Bowls are grasped on the rim, one finger inside.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlactl.expert.geometry import clearance, object_body, obstacle_boxes, object_shape
+
+POS_SCALE = 0.05  # metres per unit of action (robosuite OSC_POSE output_max)
+ROT_SCALE = 0.5  # radians per unit of action
+OPEN, CLOSE = -1.0, 1.0
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    kp: float = 1.0 / 0.05 * 0.7  # action per metre of error: ~70% of the error per step
+    ki: float = 2.0
+    kr: float = 1.5  # rotation action per radian of error / ROT_SCALE
+    travel_clearance: float = 0.12  # above the top of the highest relevant object
+    max_travel_z: float = 1.2  # the Panda cannot reach much higher over the far side of the table
+    tolerance: float = 0.01
+    close_steps: int = 10
+    open_steps: int = 8
+    lift_check: float = 0.04  # the object must rise this much, else re-grasp
+    max_regrasps: int = 3
+    rim_inset: float = 0.005  # grip site this far inside the rim's outer edge: the fingers straddle the wall evenly
+    rim_depth: float = 0.02  # grip site below a bowl's rim top; deeper and the inner finger meets the sloped wall
+
+
+def _quat_mul(a, b):
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array([
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ])
+
+
+def _quat_conj(q):
+    return np.array([-q[0], -q[1], -q[2], q[3]])
+
+
+def _quat_to_axis_angle(q):
+    q = q if q[3] >= 0 else -q
+    s = np.linalg.norm(q[:3])
+    if s < 1e-9:
+        return np.zeros(3)
+    return q[:3] / s * 2 * np.arctan2(s, q[3])
+
+
+def _yaw_quat(yaw):
+    return np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+
+
+def _yaw_of(xmat) -> float:
+    return float(np.arctan2(xmat[1, 0], xmat[0, 0]))
+
+
+class ScriptedExpert:
+    """Call `reset(env, obs)` at the start of an episode, then `act(obs)` every step."""
+
+    def __init__(self, cfg: ExpertConfig = ExpertConfig()):
+        self.cfg = cfg
+
+    # --- episode set-up -------------------------------------------------------------------------------------
+    def reset(self, env, obs) -> None:
+        predicate, target, destination = env.goal[0][:3]
+        self.target = target
+        self.destination = destination.replace("_contain_region", "")
+        sim = env.env.sim
+        self.sim = sim
+        self.shape = object_shape(sim.model, sim.data, self.target)
+        self.dest_shape = object_shape(sim.model, sim.data, self.destination)
+        self.is_bowl = "bowl" in target
+        self.start_quat = np.asarray(obs.raw["robot0_eef_quat"], dtype=np.float64)
+        self.obstacles = obstacle_boxes(sim.model, sim.data, [object_body(sim.model, self.target)])
+        self.phase, self.timer, self.regrasps = "approach", 0, 0
+        self.integral = np.zeros(3)
+        self._plan_grasp(obs)
+
+    def _body(self, name):
+        return object_body(self.sim.model, name)
+
+    def _pose(self, name):
+        b = self._body(name)
+        return np.array(self.sim.data.xpos[b]), np.array(self.sim.data.xmat[b]).reshape(3, 3)
+
+    def _plan_grasp(self, obs) -> None:
+        """Choose the grasp point and gripper yaw from the object's current pose, away from obstacles."""
+        pos, rot = self._pose(self.target)
+        half = self.shape.half_extent
+        centre = pos + rot @ self.shape.center
+        top = pos[2] + rot[2] @ np.where(rot[2] >= 0, self.shape.hi, self.shape.lo)
+        bottom = pos[2] + rot[2] @ np.where(rot[2] >= 0, self.shape.lo, self.shape.hi)
+        if self.is_bowl:
+            # Rim grasp with one finger inside the bowl: the finger axis must be radial. Four rim points are
+            # possible (two yaws x two sides); take the one whose hand column is furthest from any obstacle.
+            z = top - self.cfg.rim_depth
+            candidates = []
+            for yaw in (0.0, np.pi / 2):
+                axis = np.array([-np.sin(yaw), np.cos(yaw), 0.0])  # finger axis: world y at yaw 0
+                for side in (-1.0, 1.0):
+                    offset = side * (half[0] - self.cfg.rim_inset) * axis
+                    candidates.append((yaw, offset, np.array([centre[0], centre[1], z]) + offset))
+        else:
+            # Close across the narrow horizontal side: align the finger axis (world y at yaw 0) with it.
+            narrow_axis = rot[:, 0] if half[0] < half[1] else rot[:, 1]
+            yaw = float(np.arctan2(narrow_axis[1], narrow_axis[0])) - np.pi / 2
+            yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2  # the gripper is symmetric: turn at most 90 deg
+            depth = min(0.03, 0.8 * (top - bottom))
+            candidates = [(yaw, np.zeros(3), np.array([centre[0], centre[1], top - depth]))]
+        scores = [self._hand_clearance(point, yaw) for yaw, _, point in candidates]
+        self.grasp_yaw, self.grasp_offset, self.grasp_point = candidates[int(np.argmax(scores))]
+        self.grasp_height_above_obj = self.grasp_point[2] - pos[2]
+        self.obj_start_z = pos[2]
+
+    def _hand_clearance(self, grasp_point: np.ndarray, yaw: float) -> float:
+        """Distance from the column the hand sweeps while descending onto `grasp_point` to the nearest obstacle."""
+        c, s = np.cos(yaw), np.sin(yaw)
+        finger_axis, across = np.array([-s, c, 0.0]), np.array([c, s, 0.0])
+        grid = np.array(np.meshgrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.03, 0.03, 3), np.linspace(-0.02, 0.15, 6)))
+        u, v, w = grid.reshape(3, -1)
+        points = grasp_point + u[:, None] * finger_axis + v[:, None] * across + w[:, None] * np.array([0, 0, 1.0])
+        return clearance(points, self.obstacles)
+
+    def _travel_z(self) -> float:
+        dest_pos, dest_rot = self._pose(self.destination)
+        dest_top = dest_pos[2] + self.dest_shape.hi[2]
+        tallest = max(dest_top, self.obj_start_z + 2 * self.shape.half_extent[2])
+        return min(tallest + self.cfg.travel_clearance + self.shape.half_extent[2], self.cfg.max_travel_z)
+
+    def _place_point(self) -> np.ndarray:
+        dest_pos, dest_rot = self._pose(self.destination)
+        centre = dest_pos + dest_rot @ self.dest_shape.center
+        surface = dest_pos[2] + (self.dest_shape.lo[2] + 0.02 if "basket" in self.destination else self.dest_shape.hi[2])
+        obj_bottom_to_grip = self.grasp_height_above_obj - self.shape.lo[2]
+        return np.array([centre[0] + self.grasp_offset[0], centre[1] + self.grasp_offset[1], surface + obj_bottom_to_grip + 0.02])
+
+    # --- control -------------------------------------------------------------------------------------------
+    def _servo(self, eef, target, grip, yaw) -> np.ndarray:
+        err = target - eef
+        self.integral = np.clip(self.integral + err, -0.05, 0.05)
+        dpos = np.clip(self.cfg.kp * err + self.cfg.ki * self.integral, -1.0, 1.0)
+        q_target = _quat_mul(_yaw_quat(yaw), self.start_quat)
+        rot_err = _quat_to_axis_angle(_quat_mul(q_target, _quat_conj(self.eef_quat)))
+        drot = np.clip(self.cfg.kr * rot_err / ROT_SCALE, -1.0, 1.0)
+        return np.concatenate([dpos, drot, [grip]])
+
+    def _go(self, phase):
+        self.phase, self.timer = phase, 0
+        self.integral[:] = 0
+
+    def act(self, obs) -> np.ndarray:
+        eef = np.asarray(obs.raw["robot0_eef_pos"], dtype=np.float64)
+        self.eef_quat = np.asarray(obs.raw["robot0_eef_quat"], dtype=np.float64)
+        self.timer += 1
+        cfg = self.cfg
+        obj_pos, _ = self._pose(self.target)
+        travel = self._travel_z()
+        close = lambda p: np.linalg.norm(p - eef) < cfg.tolerance  # noqa: E731
+
+        if self.phase == "approach":
+            above = np.array([*self.grasp_point[:2], travel])
+            if eef[2] < travel - 0.03 and np.linalg.norm(above[:2] - eef[:2]) > 0.02:
+                above = np.array([eef[0], eef[1], travel])  # rise first, then move across
+            if close(np.array([*self.grasp_point[:2], travel])) or (np.linalg.norm(self.grasp_point[:2] - eef[:2]) < 0.01 and eef[2] >= travel - 0.03):
+                self._go("descend")
+            return self._servo(eef, above, OPEN, self.grasp_yaw)
+        if self.phase == "descend":
+            if close(self.grasp_point) or self.timer > 40:
+                self._go("close")
+            return self._servo(eef, self.grasp_point, OPEN, self.grasp_yaw)
+        if self.phase == "close":
+            if self.timer >= cfg.close_steps:
+                self._go("lift")
+            return self._servo(eef, self.grasp_point, CLOSE, self.grasp_yaw)
+        if self.phase == "lift":
+            target = np.array([eef[0], eef[1], travel])
+            if obj_pos[2] - self.obj_start_z > cfg.lift_check:
+                self._go("carry")
+            elif self.timer > 25:
+                if self.regrasps < cfg.max_regrasps:
+                    self.regrasps += 1
+                    self._plan_grasp(obs)
+                    self._go("regrasp_open")
+                else:
+                    self._go("carry")
+            return self._servo(eef, target, CLOSE, self.grasp_yaw)
+        if self.phase == "regrasp_open":
+            if self.timer >= cfg.open_steps:
+                self._go("approach")
+            return self._servo(eef, eef, OPEN, self.grasp_yaw)
+        if self.phase == "carry":
+            place = self._place_point()
+            above = np.array([place[0], place[1], max(travel, eef[2])])
+            if np.linalg.norm(above[:2] - eef[:2]) < 0.01:
+                self._go("lower")
+            if eef[2] < travel - 0.03 and np.linalg.norm(above[:2] - eef[:2]) > 0.05:
+                above = np.array([eef[0], eef[1], travel])  # rise before moving across
+            return self._servo(eef, above, CLOSE, self.grasp_yaw)
+        if self.phase == "lower":
+            place = self._place_point()
+            if close(place) or self.timer > 40:
+                self._go("release")
+            return self._servo(eef, place, CLOSE, self.grasp_yaw)
+        if self.phase == "release":
+            if self.timer >= cfg.open_steps:
+                self._go("retreat")
+            return self._servo(eef, eef, OPEN, self.grasp_yaw)
+        # retreat: rise and wait; LIBERO's success check ends the episode
+        return self._servo(eef, np.array([eef[0], eef[1], travel]), OPEN, self.grasp_yaw)
