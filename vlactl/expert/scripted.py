@@ -29,6 +29,7 @@ class ExpertConfig:
     max_travel_z: float = 1.2  # the Panda cannot reach much higher over the far side of the table
     tolerance: float = 0.01
     close_steps: int = 10
+    preclose_steps: int = 3  # gripper commands of +1 before a rim grasp: the fingers end about half open
     open_steps: int = 8
     lift_check: float = 0.04  # the object must rise this much, else re-grasp
     max_regrasps: int = 3
@@ -126,12 +127,19 @@ class ScriptedExpert:
         self.obj_start_z = pos[2]
 
     def _hand_clearance(self, grasp_point: np.ndarray, yaw: float) -> float:
-        """Distance from the column the hand sweeps while descending onto `grasp_point` to the nearest obstacle."""
+        """How far the gripper stays from obstacles while descending onto `grasp_point` (soft score, higher is better).
+
+        Sampled as two boxes: the (half-closed) fingers near the grasp point, and the wide hand above them.
+        """
         c, s = np.cos(yaw), np.sin(yaw)
         finger_axis, across = np.array([-s, c, 0.0]), np.array([c, s, 0.0])
-        grid = np.array(np.meshgrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.03, 0.03, 3), np.linspace(-0.02, 0.15, 6)))
-        u, v, w = grid.reshape(3, -1)
-        points = grasp_point + u[:, None] * finger_axis + v[:, None] * across + w[:, None] * np.array([0, 0, 1.0])
+
+        def box(u_half, v_half, w_lo, w_hi):
+            u, v, w = (g.ravel() for g in np.meshgrid(
+                np.linspace(-u_half, u_half, 7), np.linspace(-v_half, v_half, 3), np.linspace(w_lo, w_hi, 5)))
+            return grasp_point + u[:, None] * finger_axis + v[:, None] * across + w[:, None] * np.array([0, 0, 1.0])
+
+        points = np.concatenate([box(0.03, 0.012, -0.02, 0.05), box(0.1, 0.03, 0.07, 0.16)])
         return clearance(points, self.obstacles)
 
     def _travel_z(self) -> float:
@@ -171,16 +179,18 @@ class ScriptedExpert:
         close = lambda p: np.linalg.norm(p - eef) < cfg.tolerance  # noqa: E731
 
         if self.phase == "approach":
+            # Bowls: close the fingers part-way first, so they fit between the rim and nearby walls.
+            grip = (CLOSE if self.timer <= cfg.preclose_steps else 0.0) if self.is_bowl else OPEN
             above = np.array([*self.grasp_point[:2], travel])
             if eef[2] < travel - 0.03 and np.linalg.norm(above[:2] - eef[:2]) > 0.02:
                 above = np.array([eef[0], eef[1], travel])  # rise first, then move across
             if close(np.array([*self.grasp_point[:2], travel])) or (np.linalg.norm(self.grasp_point[:2] - eef[:2]) < 0.01 and eef[2] >= travel - 0.03):
                 self._go("descend")
-            return self._servo(eef, above, OPEN, self.grasp_yaw)
+            return self._servo(eef, above, grip, self.grasp_yaw)
         if self.phase == "descend":
             if close(self.grasp_point) or self.timer > 40:
                 self._go("close")
-            return self._servo(eef, self.grasp_point, OPEN, self.grasp_yaw)
+            return self._servo(eef, self.grasp_point, 0.0 if self.is_bowl else OPEN, self.grasp_yaw)
         if self.phase == "close":
             if self.timer >= cfg.close_steps:
                 self._go("lift")
