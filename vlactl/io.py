@@ -40,13 +40,14 @@ def atomic_write_parquet(path: Path, df) -> None:
         df.to_parquet(tmp, index=False)
 
 
-def ensure_writable_dir(path: Path) -> Path:
-    """Create `path` if needed and check that we can write there; a clear UsageError otherwise."""
+def ensure_writable_dir(path: Path, requested: Path | None = None) -> Path:
+    """Create `path` if needed and check that we can write there; a UsageError naming `requested` otherwise."""
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
         probe = tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-", delete=True)
         probe.close()
     except OSError as exc:
-        raise UsageError(f"output folder {str(path)!r} is not writable ({exc.strerror}); choose another with output_dir=...") from None
+        shown = str(requested or path)
+        raise UsageError(f"output folder {shown!r} is not writable ({exc.strerror}); choose another with output_dir=...") from None
     return path

@@ -42,7 +42,7 @@ def run_demos(cfg: DictConfig) -> dict:
     check_positive("workers", cfg.workers)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     out = resolve_path(cfg.output_dir)
-    ensure_writable_dir(out.parent)
+    ensure_writable_dir(out.parent, requested=out)
     staging = ensure_writable_dir(out.with_name(out.name + ".staging"))
     save_config(cfg, staging)
 

@@ -179,18 +179,18 @@ class ScriptedExpert:
         close = lambda p: np.linalg.norm(p - eef) < cfg.tolerance  # noqa: E731
 
         if self.phase == "approach":
-            # Bowls: close the fingers part-way first, so they fit between the rim and nearby walls.
-            grip = (CLOSE if self.timer <= cfg.preclose_steps else 0.0) if self.is_bowl else OPEN
             above = np.array([*self.grasp_point[:2], travel])
             if eef[2] < travel - 0.03 and np.linalg.norm(above[:2] - eef[:2]) > 0.02:
                 above = np.array([eef[0], eef[1], travel])  # rise first, then move across
             if close(np.array([*self.grasp_point[:2], travel])) or (np.linalg.norm(self.grasp_point[:2] - eef[:2]) < 0.01 and eef[2] >= travel - 0.03):
                 self._go("descend")
-            return self._servo(eef, above, grip, self.grasp_yaw)
+            return self._servo(eef, above, OPEN, self.grasp_yaw)
         if self.phase == "descend":
             if close(self.grasp_point) or self.timer > 40:
                 self._go("close")
-            return self._servo(eef, self.grasp_point, 0.0 if self.is_bowl else OPEN, self.grasp_yaw)
+            # Bowls: close the fingers part-way, then hold (action 0), so they fit between the rim and nearby walls.
+            grip = (CLOSE if self.timer <= cfg.preclose_steps else 0.0) if self.is_bowl else OPEN
+            return self._servo(eef, self.grasp_point, grip, self.grasp_yaw)
         if self.phase == "close":
             if self.timer >= cfg.close_steps:
                 self._go("lift")

@@ -1,0 +1,41 @@
+# vlactl: every command a user needs. `make install` sets up .venv; `make test` runs the default (fast) tests.
+PYTHON ?= python3.11
+VENV := .venv
+BIN := $(VENV)/bin
+PIP := $(BIN)/python -m pip --disable-pip-version-check -q
+export HF_HUB_OFFLINE := 1
+export MUJOCO_GL ?= egl
+
+.PHONY: install system-deps demo test test-slow bench clean-venv
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install --upgrade pip
+
+# Mesa's EGL/OSMesa for CPU rendering, installed only when missing and only where we may (root + apt).
+system-deps:
+	@if ! ldconfig -p | grep -q 'libEGL_mesa\|libOSMesa'; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    apt-get update -q && apt-get install -y -q libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6; \
+	  else echo "warning: Mesa EGL/OSMesa not found; install libegl-mesa0 libgl1-mesa-dri (or libosmesa6) to render"; fi; \
+	fi
+
+install: $(BIN)/python system-deps
+	$(PIP) install -e '.[dev]'
+	# LeRobot 0.4.4 pins torch<2.11 (a multi-GB CUDA download); its code runs with ours, so install it alone.
+	$(PIP) install --no-deps lerobot==0.4.4
+	$(BIN)/vlactl --help >/dev/null && echo "vlactl installed in $(VENV)"
+
+# The main job on the embedded default, small enough for a first run: list the suite, generate two demonstrations.
+demo: install
+	$(BIN)/vlactl tasks --suite libero_spatial
+	$(BIN)/vlactl demos suite=libero_spatial tasks=[0] episodes_per_task=2 workers=1 output_dir=outputs/demo/libero_spatial
+
+test:
+	$(BIN)/python -m pytest -q
+
+test-slow:
+	$(BIN)/python -m pytest -q -m slow
+
+bench:
+	@for f in benchmarks/bench_*.py; do echo "== $$f"; $(BIN)/python $$f || exit 1; done

@@ -1,0 +1,50 @@
+"""`vlactl demos` end to end on one task: a LeRobot v3 dataset with the documented keys, resumable."""
+
+import json
+
+import numpy as np
+import pytest
+
+from vlactl.config import load_config
+from vlactl.data.demos import run_demos
+from vlactl.data.lerobot_format import ACTION_KEY, IMAGE_KEY, ROBOT_STATE_KEY, STATE_KEY, WRIST_KEY
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demos") / "spatial"
+    base = ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}"]
+    first = run_demos(load_config("demos", base + ["episodes_per_task=1"]))
+    second = run_demos(load_config("demos", base + ["episodes_per_task=2"]))  # resumes: runs only episode 1
+    return out, first, second
+
+
+def test_expert_succeeds_and_summary_counts(demo_run):
+    out, first, second = demo_run
+    assert first["attempted"] == 1 and second["attempted"] == 2
+    assert second["succeeded"] == 2
+    saved = json.loads((out / "meta" / "vlactl_demos.json").read_text())
+    assert saved["per_task"]["0"]["succeeded"] == 2
+    assert (out / "config.yaml").exists()
+
+
+def test_resume_reuses_finished_episodes(demo_run):
+    out, _, _ = demo_run
+    staged = sorted((out.parent / "spatial.staging" / "task00").glob("*.npz"))
+    assert [p.name for p in staged] == ["ep0000.npz", "ep0001.npz"]
+
+
+def test_dataset_has_documented_frames(demo_run):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    out, _, _ = demo_run
+    ds = LeRobotDataset("vlactl/libero_spatial", root=out)
+    assert ds.num_episodes == 2
+    frame = ds[0]
+    assert tuple(frame[IMAGE_KEY].shape) == (3, 128, 128) and tuple(frame[WRIST_KEY].shape) == (3, 128, 128)
+    assert tuple(frame[STATE_KEY].shape) == (8,) and tuple(frame[ACTION_KEY].shape) == (7,)
+    assert tuple(frame[ROBOT_STATE_KEY].shape) == (7,)
+    assert frame["task"].startswith("pick up the black bowl")
+    actions = np.stack([ds[i][ACTION_KEY].numpy() for i in range(0, ds.num_frames, 5)])
+    assert np.all(np.abs(actions) <= 1.0)
+    assert (actions[:, 6] > 0).any() and (actions[:, 6] < 0).any()  # the gripper opens and closes
