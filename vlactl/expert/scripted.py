@@ -86,7 +86,7 @@ class ScriptedExpert:
         self.is_bowl = "bowl" in target
         self.start_quat = np.asarray(obs.raw["robot0_eef_quat"], dtype=np.float64)
         self.obstacles = obstacle_boxes(sim.model, sim.data, [object_body(sim.model, self.target)])
-        self.phase, self.timer, self.regrasps = "approach", 0, 0
+        self.phase, self.timer, self.regrasps, self.failed = "approach", 0, 0, []
         self.integral = np.zeros(3)
         self._plan_grasp(obs)
 
@@ -121,8 +121,10 @@ class ScriptedExpert:
             yaw = (yaw + np.pi / 2) % np.pi - np.pi / 2  # the gripper is symmetric: turn at most 90 deg
             depth = min(0.03, 0.8 * (top - bottom))
             candidates = [(yaw, np.zeros(3), np.array([centre[0], centre[1], top - depth]))]
-        scores = [self._hand_clearance(point, yaw) for yaw, _, point in candidates]
-        self.grasp_yaw, self.grasp_offset, self.grasp_point = candidates[int(np.argmax(scores))]
+        # A grasp that already failed goes to the back of the queue: re-grasps try the next-best rim point.
+        scores = [self._hand_clearance(point, yaw) - self.failed.count(i) for i, (yaw, _, point) in enumerate(candidates)]
+        self.candidate = int(np.argmax(scores))
+        self.grasp_yaw, self.grasp_offset, self.grasp_point = candidates[self.candidate]
         self.grasp_height_above_obj = self.grasp_point[2] - pos[2]
         self.obj_start_z = pos[2]
 
@@ -202,6 +204,7 @@ class ScriptedExpert:
             elif self.timer > 25:
                 if self.regrasps < cfg.max_regrasps:
                     self.regrasps += 1
+                    self.failed.append(self.candidate)
                     self._plan_grasp(obs)
                     self._go("regrasp_open")
                 else:
@@ -213,8 +216,10 @@ class ScriptedExpert:
             return self._servo(eef, eef, OPEN, self.grasp_yaw)
         if self.phase == "carry":
             place = self._place_point()
-            above = np.array([place[0], place[1], max(travel, eef[2])])
-            if np.linalg.norm(above[:2] - eef[:2]) < 0.01:
+            remaining = np.linalg.norm(place[:2] - eef[:2])
+            # Near the destination, come down: the far side of the table is out of reach at full travel height.
+            above = np.array([place[0], place[1], travel if remaining > 0.1 else min(travel, place[2] + 0.12)])
+            if remaining < 0.01 or self.timer > 80:
                 self._go("lower")
             if eef[2] < travel - 0.03 and np.linalg.norm(above[:2] - eef[:2]) > 0.05:
                 above = np.array([eef[0], eef[1], travel])  # rise before moving across
