@@ -59,6 +59,24 @@ def demos(
     run_demos(cfg)
 
 
+@app.command("train-policy")
+def train_policy(
+    overrides: Optional[List[str]] = OVERRIDES,
+    model: Optional[str] = typer.Option(None, "--model", help="hybrid or autoregressive."),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="LeRobot v3 demonstrations (vlactl demos)."),
+    steps: Optional[int] = typer.Option(None, "--steps"),
+    output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+):
+    """Train an embedded VLA on demonstrations; writes a checkpoint folder (resumable)."""
+    from vlactl.config import load_config
+    from vlactl.training.train_policy import run_train_policy
+
+    cfg = load_config(
+        "train_policy", _overrides(overrides, model=model, dataset=dataset, steps=steps, output_dir=output_dir)
+    )
+    typer.echo(f"checkpoint: {run_train_policy(cfg)}")
+
+
 def _not_yet(stage: str, issue: int):
     def command(overrides: Optional[List[str]] = OVERRIDES):
         typer.echo(f"vlactl {stage}: not yet available (tracked in issue #{issue})", err=True)
@@ -69,7 +87,6 @@ def _not_yet(stage: str, issue: int):
 
 
 for _stage, _issue in [
-    ("train-policy", 3),
     ("collect", 4),
     ("train-probes", 4),
     ("sweep", 5),

@@ -51,3 +51,28 @@ def ensure_writable_dir(path: Path, requested: Path | None = None) -> Path:
         shown = str(requested or path)
         raise UsageError(f"output folder {shown!r} is not writable ({exc.strerror}); choose another with output_dir=...") from None
     return path
+
+
+@contextmanager
+def atomic_dir(path: Path):
+    """Yield a temporary folder beside `path` that replaces the folder `path` only if the block finishes.
+
+    A folder cannot be swapped in one rename: the old one is moved aside first and deleted after, so a crash in
+    between leaves `path` missing (never half-written) with the previous version beside it as `.<name>.old`.
+    """
+    import shutil
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    tmp.chmod(0o755)  # mkdtemp makes it owner-only; a checkpoint is for everyone who may read the folder
+    old = path.with_name(f".{path.name}.old")
+    try:
+        yield tmp
+        shutil.rmtree(old, ignore_errors=True)
+        if path.exists():
+            os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

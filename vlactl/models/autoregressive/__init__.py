@@ -1,0 +1,1 @@
+"""OpenVLA-style autoregressive VLA: a Llama decoder that writes each action dimension as one of 256 bin tokens."""

@@ -1,0 +1,16 @@
+"""The autoregressive (OpenVLA / RT-2 family) configuration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from vlactl.models.parts.config import VLAConfig
+
+
+@dataclass(frozen=True)
+class AutoregressiveConfig(VLAConfig):
+    # A short chunk decoded as chunk_size * 7 tokens: the prompt is read once per chunk, and executing a chunk
+    # gives smoother motion than one action per query.
+    chunk_size: int = 5
+    replan_every: int = 5
+    bins: int = 256  # uniform bins over the normalised action range [-1, 1] (OpenVLA)

@@ -1,0 +1,20 @@
+"""The hybrid (π0 / π0.5 / SmolVLA family) configuration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from vlactl.models.parts.config import VLAConfig
+
+
+@dataclass(frozen=True)
+class HybridConfig(VLAConfig):
+    chunk_size: int = 10
+    replan_every: int = 5
+    # The expert is a narrower Llama with the backbone's depth, heads and head size, so that its layer i can attend
+    # to the backbone's layer-i keys/values (π0's action expert).
+    expert_width: int = 96
+    expert_mlp_width: int = 256
+    flow_steps: int = 10  # Euler steps from noise (t=1) to actions (t=0)
+    encode_time: float = 1.0  # the flow time at which `encode` runs the expert once, on zero noise
+    noise_seed: int = 0  # sampling noise restarts from this seed at every reset(), so rollouts are reproducible

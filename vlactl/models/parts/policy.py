@@ -1,0 +1,97 @@
+"""What the two embedded models share: the VLA interface over named Llama layers, processing, and checkpoints.
+
+A model subclass builds its modules, lists its layer stacks in `_stacks()`, records the read-out masks of the
+forward it is running in `self._masks[stack]`, and implements `forward` (training loss), `_sample` (normalised
+actions) and `_encode`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from vlactl.models.base import POOLINGS, VLA, PolicyInput
+from vlactl.models.parts.config import VLAConfig
+from vlactl.models.parts.processing import Processor
+
+WEIGHTS_FILE, CONFIG_FILE = "model.safetensors", "config.json"
+
+
+class EmbeddedPolicy(nn.Module, VLA):
+    name = ""
+    config_class = VLAConfig
+    processor_class = Processor
+
+    def __init__(self, config: VLAConfig, processor: Processor):
+        nn.Module.__init__(self)
+        self.config = config
+        self.processor = processor
+        self.chunk_size = config.chunk_size
+        self.replan_every = config.replan_every
+        self._masks: dict[str, dict[str, torch.Tensor]] = {}
+
+    # --- layers ---------------------------------------------------------------------------------------------
+    def _stacks(self) -> dict[str, nn.ModuleList]:
+        raise NotImplementedError
+
+    def layer_names(self) -> list[str]:
+        return [f"{stack}.{i}" for stack, layers in self._stacks().items() for i in range(len(layers))]
+
+    def layer_module(self, name: str) -> nn.Module:
+        stack, _, index = name.partition(".")
+        layers = self._stacks().get(stack)
+        if layers is None or not index.isdigit() or int(index) >= len(layers):
+            raise KeyError(f"unknown layer {name!r}; {self.name} has {', '.join(self.layer_names())}")
+        return layers[int(index)]
+
+    def token_mask(self, name: str, pooling: str) -> torch.Tensor:
+        if pooling not in POOLINGS:
+            raise KeyError(f"unknown pooling {pooling!r}; allowed: {', '.join(POOLINGS)}")
+        return self._masks[name.partition(".")[0]][pooling]
+
+    def layer_width(self, name: str) -> int:
+        return self.layer_module(name).hidden_size
+
+    # --- running --------------------------------------------------------------------------------------------
+    @torch.no_grad()
+    def predict_action_chunk(self, obs: PolicyInput) -> torch.Tensor:
+        return self.processor.unnormalize_actions(self._sample(self.processor.observation(obs)))
+
+    @torch.no_grad()
+    def encode(self, obs: PolicyInput) -> None:
+        self._encode(self.processor.observation(obs))
+
+    def _sample(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        raise NotImplementedError
+
+    def _encode(self, inputs: dict[str, torch.Tensor]) -> None:
+        raise NotImplementedError
+
+    # --- checkpoints ----------------------------------------------------------------------------------------
+    def save_pretrained(self, folder: Path) -> None:
+        """Weights, config and processor files into an existing folder (the caller makes the write atomic)."""
+        from safetensors.torch import save_model
+
+        from vlactl.io import atomic_write_json
+
+        folder = Path(folder)
+        save_model(self, str(folder / WEIGHTS_FILE))  # handles the text embedding the prefix shares with the decoder
+        atomic_write_json(folder / CONFIG_FILE, {"model": self.name, "config": self.config.to_dict()})
+        self.processor.save(folder)
+
+    @classmethod
+    def from_pretrained(cls, folder: Path) -> "EmbeddedPolicy":
+        from safetensors.torch import load_model
+
+        folder = Path(folder)
+        config = cls.config_class.from_dict(json.loads((folder / CONFIG_FILE).read_text())["config"])
+        policy = cls(config, cls.processor_class.load(config, folder))
+        load_model(policy, str(folder / WEIGHTS_FILE))
+        return policy.eval()
+
+
+def read_model_name(folder: Path) -> str:
+    return json.loads((Path(folder) / CONFIG_FILE).read_text())["model"]

@@ -1,0 +1,79 @@
+"""Model names -> classes, imported only when asked for (LeRobot's factory style), and `load_policy`.
+
+`load_policy` takes a checkpoint folder (written by `vlactl train-policy`), the name of an embedded model (its
+default checkpoint folder, which must have been trained), or `random`: a tiny untrained model for tests only.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from vlactl.errors import UsageError
+
+MODELS = {
+    "hybrid": "vlactl.models.hybrid.modeling_hybrid:HybridPolicy",
+    "autoregressive": "vlactl.models.autoregressive.modeling_autoregressive:AutoregressivePolicy",
+}
+RANDOM = "random"
+DEFAULT_RUN_DIR = "outputs/policies/{name}"  # where `vlactl train-policy model=<name>` writes by default
+CHECKPOINT_DIR = "checkpoint"  # inside a training run folder
+
+
+def policy_class(name: str):
+    if name not in MODELS:
+        raise UsageError(f"unknown model {name!r}; allowed: {', '.join(MODELS)}")
+    module, _, cls = MODELS[name].partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
+def checkpoint_folder(path: Path) -> Path | None:
+    """The checkpoint inside `path` (a checkpoint or a training run folder), or None."""
+    from vlactl.models.parts.policy import CONFIG_FILE
+
+    for folder in (path, path / CHECKPOINT_DIR):
+        if (folder / CONFIG_FILE).is_file():
+            return folder
+    return None
+
+
+def load_policy(name_or_path: str):
+    from vlactl.config import resolve_path
+    from vlactl.models.parts.policy import read_model_name
+
+    if name_or_path == RANDOM:
+        return tiny_policy("hybrid")
+    path = resolve_path(DEFAULT_RUN_DIR.format(name=name_or_path) if name_or_path in MODELS else name_or_path)
+    folder = checkpoint_folder(path)
+    if folder is None:
+        if name_or_path in MODELS:
+            raise UsageError(
+                f"no trained {name_or_path} checkpoint at {path}; train one with "
+                f"`vlactl train-policy model={name_or_path} dataset=<demos>` or pass a checkpoint path"
+            )
+        raise UsageError(f"unknown model {name_or_path!r}; allowed: {', '.join(MODELS)}, {RANDOM}, or a checkpoint path")
+    return policy_class(read_model_name(folder)).from_pretrained(folder)
+
+
+TINY = dict(
+    vision_channels=(8, 8, 8), width=32, layers=2, heads=2, kv_heads=1, head_dim=16, mlp_width=64, max_text_tokens=12,
+    chunk_size=4, replan_every=2,
+)
+TINY_EXTRA = {"hybrid": dict(expert_width=32, expert_mlp_width=64, flow_steps=2), "autoregressive": {}}
+TINY_INSTRUCTIONS = [
+    "pick up the black bowl between the plate and the ramekin and place it on the plate",
+    "pick up the black bowl on the stove and place it on the plate",
+]
+
+
+def tiny_policy(name: str, seed: int = 0, **overrides):
+    """A tiny model with random weights and identity normalisation: a test fixture, never a default."""
+    import numpy as np
+    import torch
+
+    cls = policy_class(name)
+    config = cls.config_class(**{**TINY, **TINY_EXTRA[name], **overrides})
+    box = np.array([[-1.0] * 8, [1.0] * 8])  # quantiles of +-1 give the identity normalisation
+    processor = cls.processor_class.fit(config, TINY_INSTRUCTIONS, box.repeat(50, 0), box[:, :7].repeat(50, 0))
+    torch.manual_seed(seed)
+    return cls(config, processor).eval()

@@ -1,0 +1,1 @@
+"""`vlactl train-policy`: training the embedded models on demonstrations."""
