@@ -1,0 +1,85 @@
+"""Forward hooks: readings equal the masked mean, interventions shift that reading by exactly u, hooks go away."""
+
+import pytest
+import torch
+from synthetic_demos import observation
+
+from vlactl.models.hooks import capture, intervene, masked_mean
+from vlactl.models.registry import MODELS, tiny_policy
+
+
+def _hooks_left(policy) -> int:
+    return sum(len(policy.layer_module(name)._forward_hooks) for name in policy.layer_names())
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_reading_is_the_masked_mean_of_the_layer_output(name):
+    policy = tiny_policy(name)
+    layer = "backbone.1"
+    outputs = []
+    handle = policy.layer_module(layer).register_forward_hook(lambda m, a, out: outputs.append(out))
+    try:
+        with capture(policy, [layer], pooling="text") as readings:
+            policy.encode(observation())
+    finally:
+        handle.remove()
+    mask = policy.token_mask(layer, "text")
+    manual = (outputs[0] * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
+    assert torch.allclose(readings[layer][0], manual, atol=1e-6)
+
+
+@pytest.mark.parametrize("pooling", ["prefix", "image", "text", "last"])
+def test_intervention_shifts_the_reading_by_exactly_u(pooling):
+    policy = tiny_policy("hybrid")
+    layer = "backbone.0"
+    u = torch.randn(2, policy.layer_width(layer))
+    seen = []
+
+    def add_u(name, pooled):
+        seen.append(pooled)
+        return u
+
+    with intervene(policy, [layer], add_u, pooling), capture(policy, [layer], pooling) as after:
+        policy.encode(observation())
+    assert torch.allclose(after[layer][0], seen[0] + u, atol=1e-5)
+
+
+@pytest.mark.parametrize("name,layer", [("hybrid", "backbone.0"), ("hybrid", "expert.0"), ("autoregressive", "backbone.0")])
+def test_intervention_changes_the_action_and_hooks_are_removed(name, layer):
+    policy = tiny_policy(name)
+    obs = observation()
+    policy.reset()
+    plain = policy.predict_action_chunk(obs)
+    big = lambda _, pooled: torch.full_like(pooled, 5.0)  # noqa: E731
+    policy.reset()
+    with intervene(policy, [layer], big), capture(policy, policy.layer_names()):
+        assert _hooks_left(policy) == len(policy.layer_names()) + 1
+        steered = policy.predict_action_chunk(obs)
+    assert not torch.allclose(plain, steered)
+    assert _hooks_left(policy) == 0
+    policy.reset()
+    assert torch.equal(policy.predict_action_chunk(obs), plain)
+
+
+def test_hooks_are_removed_on_error():
+    policy = tiny_policy("hybrid")
+    with pytest.raises(RuntimeError):
+        with capture(policy, policy.layer_names()):
+            raise RuntimeError("boom")
+    assert _hooks_left(policy) == 0
+
+
+def test_none_leaves_the_layer_alone_and_empty_sets_are_skipped():
+    policy = tiny_policy("autoregressive")
+    obs = observation()
+    calls = []
+    plain = policy.predict_action_chunk(obs)
+    with intervene(policy, ["backbone.0"], lambda name, pooled: calls.append(pooled) or None):
+        same = policy.predict_action_chunk(obs)
+    assert torch.equal(plain, same)
+    assert len(calls) == 1  # the prompt only: decode steps hold no prompt token
+
+
+def test_masked_mean_ignores_masked_tokens():
+    hidden = torch.tensor([[[1.0], [3.0], [100.0]]])
+    assert masked_mean(hidden, torch.tensor([[True, True, False]])).item() == 2.0

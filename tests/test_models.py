@@ -1,0 +1,100 @@
+"""The embedded models behind the VLA interface: shapes, ranges, layers, read-out masks, checkpoints, registry."""
+
+import dataclasses
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from synthetic_demos import observation
+
+from vlactl.config import CONF_DIR
+from vlactl.errors import UsageError
+from vlactl.models.registry import MODELS, RANDOM, load_policy, policy_class, tiny_policy
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_chunk_shape_and_range(name):
+    policy = tiny_policy(name)
+    chunk = policy.predict_action_chunk(observation())
+    assert chunk.shape == (2, policy.chunk_size, 7)
+    assert chunk.abs().max() <= 1.0 and torch.isfinite(chunk).all()
+    assert 1 <= policy.replan_every <= policy.chunk_size
+
+
+def test_layer_names_and_widths():
+    hybrid, ar = tiny_policy("hybrid"), tiny_policy("autoregressive")
+    assert hybrid.layer_names() == ["backbone.0", "backbone.1", "expert.0", "expert.1"]
+    assert ar.layer_names() == ["backbone.0", "backbone.1"]
+    assert hybrid.layer_width("backbone.0") == hybrid.config.width
+    assert hybrid.layer_width("expert.1") == hybrid.config.expert_width
+    with pytest.raises(KeyError):
+        hybrid.layer_module("expert.2")
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_prefix_masks_count_tokens(name):
+    policy = tiny_policy(name)
+    cfg = policy.config
+    obs = observation()
+    policy.encode(obs)
+    n_image = len(cfg.cameras) * cfg.image_tokens_side**2
+    words = [len(text.split()) for text in obs.instruction]
+    counts = {p: policy.token_mask("backbone.0", p).sum(1).tolist() for p in ("prefix", "image", "text", "last")}
+    assert counts["prefix"] == [cfg.prefix_tokens()] * 2
+    assert counts["image"] == [n_image] * 2
+    assert counts["text"] == [min(w, cfg.max_text_tokens) for w in words]
+    assert counts["last"] == [1, 1]
+    assert policy.token_mask("backbone.1", "last")[:, -1].all()  # the state token closes the prompt
+
+
+def test_expert_masks_are_the_action_tokens():
+    policy = tiny_policy("hybrid")
+    policy.encode(observation())
+    assert policy.token_mask("expert.0", "prefix").sum(1).tolist() == [policy.chunk_size] * 2
+    assert policy.token_mask("expert.0", "image").sum() == 0
+
+
+def test_autoregressive_decode_steps_hold_no_prompt_token():
+    policy = tiny_policy("autoregressive")
+    policy.predict_action_chunk(observation())
+    for pooling in ("prefix", "image", "text", "last"):
+        assert not policy.token_mask("backbone.0", pooling).any()
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_checkpoint_round_trip(name, tmp_path):
+    policy = tiny_policy(name, seed=3)
+    policy.save_pretrained(tmp_path)
+    loaded = load_policy(str(tmp_path))
+    assert type(loaded) is type(policy) and loaded.config == policy.config
+    obs = observation()
+    policy.reset(), loaded.reset()
+    assert torch.equal(policy.predict_action_chunk(obs), loaded.predict_action_chunk(obs))
+
+
+def test_hybrid_sampling_is_reproducible_after_reset():
+    policy = tiny_policy("hybrid")
+    obs = observation()
+    first = policy.predict_action_chunk(obs)
+    assert not torch.equal(first, policy.predict_action_chunk(obs))  # fresh noise within an episode
+    policy.reset()
+    assert torch.equal(first, policy.predict_action_chunk(obs))
+
+
+def test_registry_names_and_errors(tmp_path, monkeypatch):
+    from vlactl.models import registry
+
+    assert load_policy(RANDOM).name == "hybrid"
+    with pytest.raises(UsageError, match="allowed"):
+        load_policy("no-such-model")
+    monkeypatch.setattr(registry, "DEFAULT_RUN_DIR", str(tmp_path / "{name}"))
+    with pytest.raises(UsageError, match="train-policy"):
+        load_policy("hybrid")
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_model_yaml_matches_config_class(name):
+    yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml"))
+    assert yaml.pop("name") == name
+    config = policy_class(name).config_class
+    assert yaml == {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(config()).items()}
