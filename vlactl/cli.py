@@ -59,6 +59,25 @@ def demos(
     run_demos(cfg)
 
 
+@app.command()
+def rollout(
+    overrides: Optional[List[str]] = OVERRIDES,
+    model: Optional[str] = typer.Option(None, "--model", help="Registry name, checkpoint path, or 'scripted'."),
+    suite: Optional[str] = typer.Option(None, "--suite", help="LIBERO suite, e.g. libero_spatial."),
+    episodes_per_task: Optional[int] = typer.Option(None, "--episodes-per-task"),
+    workers: Optional[int] = typer.Option(None, "--workers", help="Simulator worker processes."),
+    video: Optional[bool] = typer.Option(None, "--video/--no-video", help="Save an mp4 per episode."),
+    run_name: Optional[str] = typer.Option(None, "--run-name", help="Output folder under outputs/rollout/."),
+):
+    """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable)."""
+    from vlactl.rollout.runner import rollout_config, run_rollout
+
+    run_rollout(rollout_config(_overrides(
+        overrides, model=model, suite=suite, episodes_per_task=episodes_per_task, workers=workers, video=video,
+        run_name=run_name,
+    )))
+
+
 @app.command("train-policy")
 def train_policy(
     overrides: Optional[List[str]] = OVERRIDES,
@@ -90,7 +109,6 @@ for _stage, _issue in [
     ("collect", 4),
     ("train-probes", 4),
     ("sweep", 5),
-    ("rollout", 3),
     ("plot", 4),
 ]:
     app.command(name=_stage)(_not_yet(_stage, _issue))

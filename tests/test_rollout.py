@@ -1,0 +1,92 @@
+"""`vlactl rollout` end to end on one task with a fixture policy: tables, summary, resume, bad input.
+
+Slow: the expert solves a task; a registry model gets rendered images and a video."""
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pandas as pd
+import pytest
+
+import fixture_policy
+from test_cli import run
+from vlactl.errors import UsageError
+from vlactl.rollout import parts
+from vlactl.rollout.runner import rollout_config, run_rollout
+
+
+def _cfg(root, *extra):
+    base = ["model=fixture", "tasks=[0]", "max_steps=4", "workers=1", f"output_root={root}"]
+    return rollout_config(base + list(extra))
+
+
+@pytest.fixture(scope="module")
+def rollout(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rollout")
+    first = run_rollout(_cfg(root, "episodes_per_task=1"), load_policy=fixture_policy.load)
+    out = root / "fixture_libero_spatial"
+    first_part = parts.stem(out, 0, 0).with_suffix(".parquet").stat().st_mtime_ns
+    second = run_rollout(_cfg(root, "episodes_per_task=2"), load_policy=fixture_policy.load)  # resumes: runs ep 1
+    return root, out, first, second, first_part
+
+
+def test_tables_and_summary(rollout):
+    _, out, _, second, _ = rollout
+    episodes = pd.read_parquet(out / "episodes.parquet")
+    assert list(episodes.columns) == parts.EPISODE_COLUMNS
+    assert episodes[["task_id", "episode", "init_state", "seed"]].values.tolist() == [[0, 0, 0, 0], [0, 1, 1, 1]]
+    assert (episodes["steps"] == 4).all() and not episodes["success"].any() and (episodes["method"] == "none").all()
+    steps = pd.read_parquet(out / "steps.parquet")
+    assert list(steps.columns) == parts.STEP_COLUMNS and len(steps) == 8
+    assert np.allclose(steps["dz"], 0.3) and (steps["z"].diff()[steps["t"] > 0] > 0).all()  # it rises, as told
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved == json.loads(json.dumps(second))
+    assert saved["episodes"] == 2 and saved["per_task"]["0"]["successes"] == 0
+    assert saved["policy"] == {"needs_images": False, "chunk_size": 4, "replan_every": 2}
+    assert (out / "config.yaml").exists() and not (out / "videos").exists()
+
+
+def test_resume_skips_finished_episodes(rollout):
+    _, out, first, _, first_part = rollout
+    assert first["episodes"] == 1
+    assert parts.stem(out, 0, 0).with_suffix(".parquet").stat().st_mtime_ns == first_part
+
+
+def test_resume_refuses_other_settings(rollout):
+    root, *_ = rollout
+    with pytest.raises(UsageError, match="seed"):
+        run_rollout(_cfg(root, "episodes_per_task=2", "seed=5"), load_policy=fixture_policy.load)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["model=scripted", "suite=libero_nope"], "libero_nope"),
+        (["model=scripted", "--episodes-per-task", "-1"], "episodes_per_task"),
+        (["model=no_such_model"], "no_such_model"),
+        ([], "model"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_2(args, needle, tmp_path):
+    res = run("rollout", f"output_root={tmp_path}", *args)
+    assert res.returncode == 2, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.strip() and "robosuite" not in line]
+    assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], res.stderr
+
+
+@pytest.mark.slow
+def test_expert_succeeds(tmp_path):
+    cfg = rollout_config(["model=scripted", "tasks=[0]", "episodes_per_task=1", "workers=1", f"output_root={tmp_path}"])
+    assert run_rollout(cfg)["successes"] == 1
+
+
+@pytest.mark.slow
+def test_registry_model_with_images_and_video(tmp_path):
+    """The registry's tiny random VLA needs images: they are rendered, fed to it, and written as a video."""
+    cfg = rollout_config(["model=random", "tasks=[0]", "episodes_per_task=1", "workers=1", "max_steps=3", "video=true",
+                          f"output_root={tmp_path}"])
+    summary = run_rollout(cfg)
+    assert summary["policy"]["needs_images"] and summary["episodes"] == 1
+    video = iio.imread(tmp_path / "random_libero_spatial" / "videos" / "task00_ep0000.mp4", plugin="pyav")
+    assert video.shape == (4, 128, 256, 3)  # the reset observation and one per step; agent view | wrist

@@ -1,0 +1,1 @@
+"""Closed-loop LIBERO evaluation (`vlactl rollout`): episodes in worker processes, per-episode parts, merged tables."""

@@ -1,0 +1,84 @@
+"""What acts in a rollout: a VLA behind its chunked-action interface, or the privileged scripted expert.
+
+Both give the episode loop the same two calls, `reset(env, obs)` and `act(obs) -> (7,) action`, so the loop never
+branches on the model. The scripted expert needs the simulator itself (object poses), which is why an agent is reset
+with the env and not just with an observation.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+
+from vlactl.errors import UsageError
+
+SCRIPTED = "scripted"
+
+
+class VLAAgent:
+    """Runs a `VLA`: predicts a chunk, executes its first `replan_every` actions, then predicts again."""
+
+    def __init__(self, vla, replan_every: int | None = None):
+        self.vla = vla.eval()
+        self.chunk_size = int(vla.chunk_size)
+        self.replan_every = int(replan_every or vla.replan_every)
+        if not 1 <= self.replan_every <= self.chunk_size:
+            raise UsageError(
+                f"replan_every must be in 1..{self.chunk_size} (the model's chunk size), got {self.replan_every}"
+            )
+        self.needs_images = bool(vla.needs_images)
+        self._queue: list[np.ndarray] = []
+        self._instruction = ""
+
+    def reset(self, env, obs) -> None:
+        self.vla.reset()
+        self._queue = []
+        self._instruction = env.instruction
+
+    def act(self, obs) -> np.ndarray:
+        if not self._queue:
+            import torch
+
+            from vlactl.models.base import PolicyInput
+
+            batch = PolicyInput(
+                images={key: img[None] for key, img in obs.images.items()},
+                state=obs.libero_state[None].astype(np.float32),
+                instruction=[self._instruction],
+            )
+            with torch.inference_mode():
+                chunk = self.vla.predict_action_chunk(batch)
+            self._queue = list(chunk[0, : self.replan_every].float().cpu().numpy())
+        return self._queue.pop(0)
+
+
+class ScriptedAgent:
+    """The scripted expert with privileged object poses: an upper bound and a pipeline check, not a VLA."""
+
+    needs_images = False
+    chunk_size = replan_every = 1
+
+    def __init__(self):
+        from vlactl.expert.scripted import ScriptedExpert
+
+        self.expert = ScriptedExpert()
+
+    def reset(self, env, obs) -> None:
+        self.expert.reset(env, obs)
+
+    def act(self, obs) -> np.ndarray:
+        return self.expert.act(obs)
+
+
+def load_agent(model: str, replan_every: int | None = None, load_policy: Callable | None = None):
+    """`scripted`, or a registry name / checkpoint path resolved by `load_policy` (the model registry by default)."""
+    if model == SCRIPTED:
+        return ScriptedAgent()
+    if load_policy is None:
+        from vlactl.models.registry import load_policy
+    try:
+        policy = load_policy(model)
+    except UsageError as exc:  # the registry lists its own models; a rollout also takes the expert
+        raise UsageError(f"{exc}, or {SCRIPTED}" if str(exc).startswith("unknown model") else str(exc)) from None
+    return VLAAgent(policy, replan_every)

@@ -1,0 +1,143 @@
+"""`vlactl rollout`: closed-loop evaluation of a policy on a LIBERO suite, in worker processes, resumable.
+
+Protocol (SPEC.md §3): episode k of a task starts from the suite's fixed init state k mod 50 with seed `seed + k`,
+settles with no-op steps (LiberoEnv), then runs at most the suite's step limit (220 on libero_spatial), re-planning
+action chunks every `replan_every` actions; success is LIBERO's own check and ends the episode. Images are rendered
+only when the policy needs them or videos are asked for.
+
+Outputs in `<output_root>/<run_name>/`: episodes.parquet, steps.parquet, summary.json, config.yaml, videos/.
+Finished episodes live in parts/ (see `parts`); re-running the same command skips them and rebuilds the tables.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import re
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from vlactl.config import load_config, resolve_path, save_config
+from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
+from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir
+from vlactl.rollout import parts
+from vlactl.rollout.agents import load_agent
+from vlactl.rollout.summary import format_summary, summarise_file
+from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
+
+# Settings that change what an episode is: parts made under other values must not be mixed into this run.
+SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env")
+
+
+def rollout_config(overrides: list[str] | None = None) -> DictConfig:
+    """The rollout config with `model=<name or path>` applied after composing.
+
+    `conf/model/` is a config group (the architectures `train-policy` builds), so Hydra would read `model=x` as
+    choosing a file of that group; here `model` is a plain string: a registry name, a checkpoint path, or `scripted`.
+    """
+    overrides = list(overrides or [])
+    models = [item.split("=", 1)[1] for item in overrides if item.startswith("model=")]
+    cfg = load_config("rollout", [item for item in overrides if not item.startswith("model=")])
+    if models:
+        cfg.model = models[-1]
+    return cfg
+
+
+def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
+    """Run (or resume) the rollout `cfg` describes; returns the summary. `load_policy` replaces the model registry."""
+    from vlactl.env.suites import MAX_STEPS, SUITES, resolve_tasks
+
+    if OmegaConf.is_missing(cfg, "model"):
+        raise UsageError("model is required: model=<registry name or checkpoint path>, e.g. model=scripted")
+    check_choice("suite", cfg.suite, SUITES)
+    check_non_negative("episodes_per_task", cfg.episodes_per_task)
+    check_positive("workers", cfg.workers)
+    cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps
+    check_positive("max_steps", cfg.max_steps)
+    tasks = resolve_tasks(cfg.suite, cfg.tasks)
+    out = run_dir(cfg)
+    _check_same_run(cfg, out)
+
+    # Load once here, before any worker starts: a bad model name fails in one line, and we learn its settings.
+    agent = load_agent(str(cfg.model), cfg.replan_every, load_policy)
+    policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every}
+    del agent
+    ensure_writable_dir(out)
+    save_config(cfg, out)
+
+    keys = [(t, k) for t in tasks for k in range(cfg.episodes_per_task)]
+    todo = [key for key in keys if not parts.is_done(out, *key)]
+    spec = RunSpec(
+        out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
+        replan_every=cfg.replan_every, video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
+        load_policy=load_policy,
+    )
+    _run_workers(spec, batches(todo, cfg.workers), out, keys, cfg.workers)
+
+    episodes, steps = parts.merge(out, keys)
+    atomic_write_parquet(out / "episodes.parquet", episodes)
+    atomic_write_parquet(out / "steps.parquet", steps)
+    summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy}
+    summary.update(summarise_file(out / "episodes.parquet"))
+    atomic_write_json(out / "summary.json", summary)
+    print(format_summary(summary))
+    print(f"wrote {out}")
+    return summary
+
+
+def run_dir(cfg: DictConfig) -> Path:
+    """`<output_root>/<run_name>` (created later); the default run name is the model and the suite, e.g.
+    `scripted_libero_spatial`. Fails early if the root is not writable."""
+    name = cfg.run_name or f"{re.sub(r'[^A-Za-z0-9._-]+', '-', str(cfg.model)).strip('-.')}_{cfg.suite}"
+    root = resolve_path(cfg.output_root)
+    return ensure_writable_dir(root, requested=root) / name
+
+
+def _check_same_run(cfg: DictConfig, out: Path) -> None:
+    saved = out / "config.yaml"
+    if not saved.exists():
+        return
+    old, new = OmegaConf.to_container(OmegaConf.load(saved)), OmegaConf.to_container(cfg, resolve=True)
+    for key in SAME_RUN_KEYS:
+        before, now = old.get(key), new[key]
+        if before != now:
+            raise UsageError(
+                f"{out} holds a run with {key}={before!r}, not {now!r}; resume it with the same settings "
+                f"or choose another run_name=..."
+            )
+
+
+def batches(todo: list[tuple[int, int]], workers: int) -> list[Batch]:
+    """Group pending episodes by task so each worker builds an env once per batch (env creation takes seconds).
+
+    With at least as many tasks as workers a batch is a whole task and the pool balances tasks; with fewer, each
+    task is split into contiguous pieces so every worker has work.
+    """
+    by_task: dict[int, list[int]] = {}
+    for task, k in todo:
+        by_task.setdefault(task, []).append(k)
+    pieces = -(-workers // len(by_task)) if by_task else 1
+    out = []
+    for task, episodes in by_task.items():
+        n = min(pieces, len(episodes))
+        out += [Batch(task, tuple(episodes[i * len(episodes) // n : (i + 1) * len(episodes) // n])) for i in range(n)]
+    return out
+
+
+def _run_workers(spec: RunSpec, work: list[Batch], out: Path, keys: list, workers: int) -> None:
+    def finished() -> int:
+        return sum(parts.is_done(out, *key) for key in keys)
+
+    bar = tqdm(total=len(keys), initial=finished(), desc=f"rollout {spec.suite}", unit="ep")
+    if work:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(min(workers, len(work)), initializer=init_worker, initargs=(spec,)) as pool:
+            result = pool.map_async(run_batch, work, chunksize=1)
+            while not result.ready():  # batches report at their end; the parts on disk show each episode
+                result.wait(1.0)
+                if finished() > bar.n:
+                    bar.update(finished() - bar.n)
+            result.get()  # re-raises a worker's error
+        bar.update(finished() - bar.n)
+    bar.close()

@@ -1,0 +1,41 @@
+"""Success per task and overall, with counts and mean episode length, from a rollout's episode table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+
+def _stats(episodes: pd.DataFrame) -> dict:
+    n, ok = len(episodes), int(episodes["success"].sum())
+    won = episodes.loc[episodes["success"].astype(bool), "steps"]
+    return {
+        "episodes": n,
+        "successes": ok,
+        "success_rate": ok / n if n else None,
+        "mean_steps": float(episodes["steps"].mean()) if n else None,
+        "mean_steps_success": float(won.mean()) if len(won) else None,
+    }
+
+
+def summarise(episodes: pd.DataFrame) -> dict:
+    per_task = {
+        int(task): {"instruction": group["instruction"].iloc[0], **_stats(group)}
+        for task, group in episodes.groupby("task_id", sort=True)
+    }
+    return {**_stats(episodes), "per_task": per_task}
+
+
+def summarise_file(path: Path) -> dict:
+    return summarise(pd.read_parquet(path))
+
+
+def format_summary(summary: dict) -> str:
+    def rate(s):
+        return "n/a" if s["success_rate"] is None else f"{100 * s['success_rate']:.0f}%"
+
+    lines = [f"success {summary['successes']}/{summary['episodes']} ({rate(summary)})"]
+    for task, s in summary["per_task"].items():
+        lines.append(f"  task {task}: {s['successes']}/{s['episodes']} ({rate(s)})  {s['instruction']}")
+    return "\n".join(lines)

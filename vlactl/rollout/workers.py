@@ -1,0 +1,91 @@
+"""Worker side of a rollout: each process loads the agent once, keeps one env (per task), runs batches of episodes.
+
+Env creation costs seconds, so work comes in per-task batches; each finished episode is written as a part
+(`vlactl.rollout.parts`) right away, so an interruption loses at most the episodes in flight.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from vlactl.rollout import parts
+from vlactl.rollout.agents import load_agent
+from vlactl.rollout.episode import run_episode
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What every worker needs to know about the run (pickled once per worker)."""
+
+    out: str
+    suite: str
+    model: str
+    seed: int  # episode k runs with seed + k
+    max_steps: int
+    replan_every: int | None
+    video: bool
+    env: dict
+    load_policy: Callable | None = None  # None: the model registry; tests pass a fixture loader
+
+
+@dataclass(frozen=True)
+class Batch:
+    task: int
+    episodes: tuple[int, ...]
+
+
+_SPEC: RunSpec | None = None
+_AGENT = None
+_ENV: dict = {}
+
+
+def init_worker(spec: RunSpec) -> None:
+    import signal
+
+    import torch
+
+    global _SPEC
+    _SPEC = spec
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and terminates the pool
+    torch.set_num_threads(1)  # the simulator needs the other core; 2 threads made small forwards ~80x slower
+
+
+def _agent():
+    global _AGENT
+    if _AGENT is None:  # loaded on first use, not in the initializer: a failing initializer respawns forever
+        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy)
+    return _AGENT
+
+
+def _env(task: int, render: bool):
+    from vlactl.env.libero_env import EnvConfig, LiberoEnv
+
+    if task not in _ENV:
+        for old in _ENV.values():
+            old.close()
+        _ENV.clear()  # one env per worker: each holds a simulator (and a renderer) of ~100 MB
+        _ENV[task] = LiberoEnv(_SPEC.suite, task, EnvConfig(**_SPEC.env), render=render)
+    return _ENV[task]
+
+
+def run_batch(batch: Batch) -> None:
+    """Run the batch's episodes (the parent passes only unfinished ones), each saved as a part when done."""
+    spec, agent = _SPEC, _agent()
+    render = agent.needs_images or spec.video
+    env = _env(batch.task, render)
+    out = Path(spec.out)
+    for k in batch.episodes:
+        init_state, seed = k % env.n_init_states, spec.seed + k
+        result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video)
+        if spec.video:
+            from vlactl.rollout.video import write_video
+
+            write_video(out / "videos" / f"task{batch.task:02d}_ep{k:04d}.mp4", result.frames)
+        row = {
+            "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
+            "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
+            "wall_s": round(result.wall_s, 3), "model": spec.model, "method": "none", "constraint": "none",
+        }
+        parts.write(out, row, parts.steps_frame(batch.task, k, result))
