@@ -96,6 +96,38 @@ def train_policy(
     typer.echo(f"checkpoint: {run_train_policy(cfg)}")
 
 
+@app.command("train-probes")
+def train_probes(
+    overrides: Optional[List[str]] = OVERRIDES,
+    activations: Optional[str] = typer.Option(None, "--activations", help="Activation folder (vlactl collect)."),
+    run: Optional[str] = typer.Option(None, "--run", help="Run name; output under outputs/probes/<run>."),
+    output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+):
+    """Fit a linear probe per layer x feature; writes metrics.parquet and one safetensors file per probe."""
+    from vlactl.config import load_config
+    from vlactl.steering.train_probes import run_train_probes
+
+    run_train_probes(load_config(
+        "train_probes", _overrides(overrides, activations=activations, run=run, output_dir=output_dir)
+    ))
+
+
+plot_app = typer.Typer(no_args_is_help=True, help="The paper's figures, drawn from a stage's output files.")
+app.add_typer(plot_app, name="plot")
+
+
+@plot_app.command("probes")
+def plot_probes(
+    overrides: Optional[List[str]] = OVERRIDES,
+    run_dir: Optional[str] = typer.Option(None, "--run-dir", help="Probe run folder (vlactl train-probes)."),
+):
+    """Fig. 1 (best layer per feature vs baseline) and per-layer curves of every probe metric, PNG and PDF."""
+    from vlactl.config import load_config
+    from vlactl.plots.probes import run_plot_probes
+
+    run_plot_probes(load_config("plot_probes", _overrides(overrides, run_dir=run_dir)))
+
+
 def _not_yet(stage: str, issue: int):
     def command(overrides: Optional[List[str]] = OVERRIDES):
         typer.echo(f"vlactl {stage}: not yet available (tracked in issue #{issue})", err=True)
@@ -107,9 +139,7 @@ def _not_yet(stage: str, issue: int):
 
 for _stage, _issue in [
     ("collect", 4),
-    ("train-probes", 4),
     ("sweep", 5),
-    ("plot", 4),
 ]:
     app.command(name=_stage)(_not_yet(_stage, _issue))
 

@@ -1,0 +1,150 @@
+"""Linear observers f_l(x) = w.x + b for every layer x feature at once (paper §IV-A, SPEC.md §2).
+
+Inputs are standardised per layer with the training split's mean and std; the standardisation is then folded into
+the weights, so a probe is a plain linear map on the layer's original (pooled) representation, which is what the
+controller needs. Continuous features get ridge probes (vlactl.steering.ridge), binary ones logistic probes
+(vlactl.steering.logistic); for those the reading is the logit.
+
+When the layer is wider than the training set (d > n) the fit runs in the n-dimensional span of the training rows
+(the kernel form): Z = U diag(sqrt(e)) V^T from the eigendecomposition of Z Z^T. Ridge and L2-logistic solutions lie
+in that span, so the reduced problem is exact and costs n^2 d instead of n d^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from vlactl.steering.logistic import fit_logistic
+from vlactl.steering.ridge import fit_ridge
+
+REGRESSION, LOGISTIC = "regression", "logistic"
+
+
+@dataclass(frozen=True)
+class ProbeSettings:
+    ridge_grid: tuple[float, ...] = (1e-1, 1.0, 1e1, 1e2, 1e3, 1e4, 1e5)
+    logistic_l2: float = 1.0  # scikit-learn's default, C = 1
+    newton_steps: int = 20
+
+
+@dataclass
+class Probe:
+    """One observer f(x) = weight . x + bias on one layer's pooled representation, in its original (raw) space.
+
+    For a logistic probe the reading is the logit, which the controller steers; `output` is the probability.
+    """
+
+    feature: str
+    kind: str  # REGRESSION or LOGISTIC
+    layer: str
+    model: str
+    pooling: str
+    weight: torch.Tensor  # [d] float64
+    bias: float
+    mean: torch.Tensor  # [d] the standardisation folded into weight and bias, kept for the record
+    std: torch.Tensor  # [d]
+    positive: str = ""  # logistic probes: what label 1 means, e.g. "gripper < 0.5 (closed)"
+    metrics: dict = field(default_factory=dict)
+
+    @property
+    def width(self) -> int:
+        return self.weight.shape[0]
+
+    def reading(self, x: torch.Tensor) -> torch.Tensor:
+        """x [..., d] -> [...]."""
+        return x.double() @ self.weight + self.bias
+
+    def output(self, x: torch.Tensor) -> torch.Tensor:
+        z = self.reading(x)
+        return torch.sigmoid(z) if self.kind == LOGISTIC else z
+
+
+@dataclass
+class LinearProbes:
+    """Probes of L layers x F features as raw-space linear maps: reading = x . weight[l, f] + bias[l, f]."""
+
+    weight: torch.Tensor  # [L, F, d]
+    bias: torch.Tensor  # [L, F]
+    mean: torch.Tensor  # [L, d] training mean (already folded into weight and bias; kept for the record)
+    std: torch.Tensor  # [L, d]
+    kinds: list[str]  # per feature: "regression" or "logistic"
+    lam: torch.Tensor  # [L, F] penalty used (chosen by CV for ridge, fixed for logistic)
+    cv_r2: torch.Tensor  # [L, F] cross-validated R^2 for ridge probes, NaN for logistic
+    extra: dict = field(default_factory=dict)
+
+    def readings(self, x: torch.Tensor) -> torch.Tensor:
+        """x [L, n, d] -> [L, n, F] (logits for logistic probes), in float64."""
+        return torch.einsum("lnd,lfd->lnf", x.double(), self.weight) + self.bias[:, None, :]
+
+    def probe(self, li: int, fi: int, /, **about) -> Probe:
+        """The probe of layer li and feature fi; `about` names it (feature, layer, model, pooling, ...)."""
+        return Probe(
+            kind=self.kinds[fi], weight=self.weight[li, fi].clone(), bias=float(self.bias[li, fi]),
+            mean=self.mean[li].clone(), std=self.std[li].clone(), **about,
+        )
+
+
+def standardise_(z: torch.Tensor, chunk: int = 512) -> tuple[torch.Tensor, torch.Tensor]:
+    """Standardise z [L, n, d] in place per layer and dimension; returns the mean and std used (float64).
+
+    Constant dimensions get std 1 (they carry nothing). Reductions run over row chunks that stay in cache: a
+    reduction over the middle axis of the whole tensor is several times slower on CPU.
+    """
+    mean = z.sum(1) / z.shape[1]
+    z.sub_(mean[:, None])
+    var = sum(part.square().sum(1) for part in z.split(chunk, 1)) / z.shape[1]
+    std = var.double().sqrt()
+    std = torch.where(std > 1e-6 * (1 + mean.double().abs()), std, torch.ones_like(std))
+    z.div_(std[:, None].float())
+    return mean.double(), std
+
+
+def _kernel_basis(z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """z [L, n, d] with d > n -> coordinates [L, n, n] and basis [L, d, n] with z = coords @ basis^T."""
+    e, u = torch.linalg.eigh(torch.bmm(z, z.mT).double())
+    keep = e > e[:, -1:] * 1e-10  # drop the null space (rank < n, e.g. the centring direction)
+    root = torch.where(keep, e, torch.ones_like(e)).sqrt()
+    coords = u * torch.where(keep, root, torch.zeros_like(root))[:, None, :]
+    basis = (z.mT.double() @ u) / root[:, None, :] * keep[:, None, :]
+    return coords.to(z.dtype), basis
+
+
+def fit_probes(
+    x: torch.Tensor,
+    y: np.ndarray,
+    kinds: list[str],
+    train: np.ndarray,
+    folds: np.ndarray,
+    settings: ProbeSettings = ProbeSettings(),
+) -> LinearProbes:
+    """x [L, N, d] activations (float32), y [N, F] labels (0/1 for logistic features), train [n] row indices,
+    folds [n] episode-grouped fold id of each training row."""
+    order = np.argsort(folds, kind="stable")  # rows grouped by fold: each fold is a view of one copy
+    rows, folds = np.asarray(train)[order], np.asarray(folds)[order]
+    labels = torch.as_tensor(np.asarray(y)[rows], dtype=torch.float64)
+    z = x.index_select(1, torch.as_tensor(rows)).float()
+    mean, std = standardise_(z)
+    basis = None
+    if z.shape[2] > z.shape[1]:
+        z, basis = _kernel_basis(z)
+    n_layers, _, p = z.shape
+    n_feat = len(kinds)
+    w = torch.zeros(n_layers, p, n_feat, dtype=torch.float64)
+    b = torch.zeros(n_layers, n_feat, dtype=torch.float64)
+    lam = torch.full((n_layers, n_feat), float(settings.logistic_l2), dtype=torch.float64)
+    cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64)
+    reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
+    if reg:
+        fit = fit_ridge(z, labels[:, reg], np.bincount(folds).tolist(), torch.tensor(settings.ridge_grid))
+        w[:, :, reg], b[:, reg], lam[:, reg], cv_r2[:, reg] = fit.weight, fit.bias, fit.lam, fit.cv_r2
+    for i, kind in enumerate(kinds):
+        if kind == LOGISTIC:
+            w[:, :, i], b[:, i] = fit_logistic(z, labels[:, i], settings.logistic_l2, settings.newton_steps)
+    if basis is not None:
+        w = basis @ w
+    weight = (w / std[:, :, None]).mT.contiguous()  # fold the standardisation in: w.(x - mean)/std + b
+    bias = b - torch.einsum("lfd,ld->lf", weight, mean)
+    return LinearProbes(weight=weight, bias=bias, mean=mean, std=std, kinds=list(kinds), lam=lam, cv_r2=cv_r2)

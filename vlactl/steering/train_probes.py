@@ -1,0 +1,172 @@
+"""`vlactl train-probes`: activation folder in, probe folder out (docs/formats.md). The math lives in the modules
+beside this one; this file reads, checks, batches layers to bound memory, and writes."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from omegaconf import DictConfig, ListConfig
+
+from vlactl.config import REPO_ROOT, resolve_path, save_config
+from vlactl.errors import UsageError, check_positive
+from vlactl.io import atomic_write_parquet, ensure_writable_dir
+from vlactl.steering.activations import FEATURES, ActivationStore
+from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
+from vlactl.steering.probe_file import save_probe
+from vlactl.steering.probes import LOGISTIC, REGRESSION, ProbeSettings, fit_probes
+from vlactl.steering.split import episode_folds, split_by_episode
+
+# Binary features (SPEC.md §2) and what label 1 means; the controller steers their logit.
+BINARY = {
+    "gripper": ("gripper < 0.5 (closed)", lambda v: v < 0.5),
+    "gripper_action": ("gripper_action > 0 (close)", lambda v: v > 0),
+}
+METRICS_NAME = "metrics.parquet"
+
+
+def probe_filename(layer: str, feature: str) -> str:
+    return f"{layer}__{feature}.safetensors"
+
+
+def _chosen(name: str, value, allowed: list[str]) -> list[str]:
+    if value == "all":
+        return list(allowed)
+    chosen = [str(v) for v in value] if isinstance(value, (list, ListConfig)) else [str(value)]
+    unknown = [v for v in chosen if v not in allowed]
+    if unknown or not chosen:
+        raise UsageError(f"unknown {name} {unknown[0] if unknown else chosen!r}; allowed: all, {', '.join(allowed)}")
+    return chosen
+
+
+def _targets(labels: pd.DataFrame, features: list[str]) -> tuple[np.ndarray, list[str]]:
+    y = np.empty((len(labels), len(features)))
+    kinds = []
+    for i, name in enumerate(features):
+        values = labels[name].to_numpy(dtype=np.float64)
+        if not np.isfinite(values).all():
+            raise UsageError(f"feature {name!r} has missing or non-finite labels in the activation folder")
+        y[:, i] = BINARY[name][1](values) if name in BINARY else values
+        kinds.append(LOGISTIC if name in BINARY else REGRESSION)
+    return y, kinds
+
+
+def _check(cfg: DictConfig) -> None:
+    if cfg.activations is None:
+        raise UsageError("which activations? pass activations=<folder written by `vlactl collect`>")
+    if not 0 < cfg.test_fraction < 1:
+        raise UsageError(f"test_fraction must be in (0, 1), got {cfg.test_fraction!r}")
+    if cfg.cv_folds < 2:
+        raise UsageError(f"cv_folds must be >= 2, got {cfg.cv_folds!r}")
+    for key in ("layer_batch", "threads", "newton_steps", "robustness_directions", "robustness_frames"):
+        check_positive(key, cfg[key])
+    if not cfg.ridge_grid or min(cfg.ridge_grid) <= 0:
+        raise UsageError(f"ridge_grid must be a non-empty list of penalties > 0, got {list(cfg.ridge_grid or [])}")
+    check_positive("logistic_l2", cfg.logistic_l2)
+
+
+def run_train_probes(cfg: DictConfig) -> Path:
+    _check(cfg)
+    store = ActivationStore(resolve_path(cfg.activations))
+    layers = _chosen("layer", cfg.layers, store.layers)
+    features = _chosen("feature", cfg.features, list(FEATURES))
+    labels = store.labels
+    episodes = labels["episode"].to_numpy()
+    n_episodes = len(np.unique(episodes))
+    if n_episodes < cfg.cv_folds + 1:
+        raise UsageError(
+            f"{n_episodes} episodes in {cfg.activations!r}: too few to hold out test episodes and make "
+            f"{cfg.cv_folds} cross-validation folds; collect at least {cfg.cv_folds + 2}"
+        )
+    train, test = split_by_episode(episodes, cfg.test_fraction, cfg.seed)
+    if len(np.unique(episodes[train])) < cfg.cv_folds:
+        raise UsageError(f"too few training episodes for cv_folds={cfg.cv_folds}; lower test_fraction or cv_folds")
+    folds = episode_folds(episodes[train], cfg.cv_folds, cfg.seed)
+    y, kinds = _targets(labels, features)
+    keep = [i for i, kind in enumerate(kinds) if kind == REGRESSION or 0 < y[train, i].mean() < 1]
+    for i in sorted(set(range(len(features))) - set(keep)):
+        print(f"warning: skipping {features[i]}: one class only in the training episodes", file=sys.stderr)
+    features, kinds, y = [features[i] for i in keep], [kinds[i] for i in keep], y[:, keep]
+
+    run = cfg.run or resolve_path(cfg.activations).name
+    out = resolve_path(cfg.output_dir) if cfg.output_dir else REPO_ROOT / "outputs" / "probes" / run
+    ensure_writable_dir(out / "probes", requested=out)
+    torch.set_num_threads(cfg.threads)
+    settings = ProbeSettings(
+        ridge_grid=tuple(float(v) for v in cfg.ridge_grid), logistic_l2=float(cfg.logistic_l2),
+        newton_steps=int(cfg.newton_steps),
+    )
+    by_width: dict[int, list[str]] = {}
+    for name in layers:
+        by_width.setdefault(store.widths[name], []).append(name)
+    rows = []
+    for group in by_width.values():
+        for start in range(0, len(group), cfg.layer_batch):
+            batch = group[start : start + cfg.layer_batch]
+            print(f"probes for {', '.join(batch)}", file=sys.stderr)
+            rows += _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds, settings, out)
+    order = {name: i for i, name in enumerate(FEATURES)}
+    table = pd.DataFrame(rows)
+    table = table.sort_values(["feature", "layer_index"], key=lambda c: c.map(order) if c.name == "feature" else c)
+    table = table.reset_index(drop=True)
+    atomic_write_parquet(out / METRICS_NAME, table)
+    save_config(cfg, out)
+    _print_best(table)
+    print(f"wrote {out / METRICS_NAME} and {len(table)} probes under {out / 'probes'}", file=sys.stderr)
+    return out
+
+
+def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds, settings, out) -> list[dict]:
+    x = store.load(batch)
+    probes = fit_probes(x, y, kinds, train, folds, settings)
+    x_test = x[:, torch.as_tensor(test)]
+    del x
+    readings = probes.readings(x_test)
+    y_test = torch.as_tensor(y[test])
+    reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
+    log = [i for i, k in enumerate(kinds) if k == LOGISTIC]
+    per_feature = {}
+    if reg:
+        m = regression_metrics(readings[..., reg], y_test[:, reg], torch.as_tensor(y[train][:, reg].mean(0)))
+        per_feature.update({(key, f): value[:, j] for key, value in m.items() for j, f in enumerate(reg)})
+    if log:
+        majority = torch.as_tensor((y[train][:, log].mean(0) > 0.5).astype(np.float64))
+        m = classification_metrics(readings[..., log], y_test[:, log], majority)
+        per_feature.update({(key, f): value[:, j] for key, value in m.items() for j, f in enumerate(log)})
+    robust = robustness(
+        probes, x_test, list(cfg.robustness_norms), cfg.robustness_directions, cfg.robustness_frames, cfg.seed
+    )
+    rows = []
+    for li, layer in enumerate(batch):
+        for fi, feature in enumerate(features):
+            row = {
+                "model": store.model, "pooling": store.pooling, "layer": layer, "layer_index": layers.index(layer),
+                "feature": feature, "kind": kinds[fi], "n_train": len(train), "n_test": len(test),
+                "penalty": float(probes.lam[li, fi]), "cv_r2": float(probes.cv_r2[li, fi]),
+                "weight_norm": float(probes.weight[li, fi].norm()),
+            }
+            row.update({key: float(value[li]) for (key, f), value in per_feature.items() if f == fi})
+            row.update({key: float(value[li, fi]) for key, value in robust.items()})
+            row["probe"] = f"probes/{probe_filename(layer, feature)}"
+            positive = BINARY[feature][0] if feature in BINARY else ""
+            probe = probes.probe(li, fi, feature=feature, layer=layer, model=store.model, pooling=store.pooling,
+                                 positive=positive, metrics={k: v for k, v in row.items() if isinstance(v, float)})
+            save_probe(probe, out / row["probe"])
+            rows.append(row)
+    return rows
+
+
+def _print_best(table: pd.DataFrame) -> None:
+    """Best layer per feature (by test R^2 / balanced accuracy, as the paper's Fig. 1) against its baseline."""
+    for feature, rows in table.groupby("feature", sort=False):
+        if rows["kind"].iloc[0] == REGRESSION:
+            best = rows.loc[rows["r2"].fillna(-np.inf).idxmax()]
+            print(f"{feature:15s} best {best['layer']:14s} R2 {best['r2']:6.3f}  MAE {best['mae']:.4g} "
+                  f"(train-mean baseline {best['baseline_mae']:.4g})")
+        else:
+            best = rows.loc[rows["balanced_accuracy"].fillna(-np.inf).idxmax()]
+            print(f"{feature:15s} best {best['layer']:14s} acc {best['accuracy']:.3f} balanced "
+                  f"{best['balanced_accuracy']:.3f} (majority baseline {best['baseline_accuracy']:.3f})")
