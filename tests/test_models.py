@@ -94,7 +94,7 @@ def test_registry_names_and_errors(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("name", list(MODELS))
 def test_model_yaml_matches_config_class(name):
-    yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml"))
+    yaml = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "model" / f"{name}.yaml"))["model"]
     assert yaml.pop("name") == name
     config = policy_class(name).config_class
     assert yaml == {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(config()).items()}

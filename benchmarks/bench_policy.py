@@ -1,0 +1,126 @@
+"""Per-control-step inference time of the embedded models, amortised over the executed part of a chunk, with 1 and
+2 torch threads; parameters and checkpoint size; the cost of capturing every layer; one training step.
+
+    python benchmarks/bench_policy.py [--checkpoint PATH ...] [--repeats 20] [--batch 32]
+
+Without checkpoints it times freshly built default-size models (timing does not depend on the weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from vlactl.models.hooks import capture
+from vlactl.models.registry import MODELS, load_policy, policy_class
+from vlactl.models.parts.policy import WEIGHTS_FILE
+
+INSTRUCTION = "pick up the black bowl between the plate and the ramekin and place it on the plate"
+
+
+def default_policy(name: str):
+    cls = policy_class(name)
+    config = cls.config_class()
+    rng = np.random.default_rng(0)
+    processor = cls.processor_class.fit(config, [INSTRUCTION], rng.normal(size=(100, 8)), rng.uniform(-1, 1, (100, 7)))
+    return cls(config, processor).eval()
+
+
+def observation(config):
+    from vlactl.models.base import PolicyInput
+
+    rng = np.random.default_rng(0)
+    size = config.image_size
+    images = {cam: rng.integers(0, 256, (1, size, size, 3), dtype=np.uint8) for cam in config.cameras}
+    return PolicyInput(images, rng.normal(size=(1, 8)).astype(np.float32), [INSTRUCTION])
+
+
+def time_ms(fn, repeats: int) -> tuple[float, float]:
+    """Median wall and CPU milliseconds. On a busy machine the CPU time of a 1-thread run is the better estimate of
+    its wall time on a quiet one."""
+    for _ in range(3):
+        fn()
+    wall, cpu = [], []
+    for _ in range(repeats):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        fn()
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return 1000 * float(np.median(wall)), 1000 * float(np.median(cpu))
+
+
+def train_step_s(policy, batch_size: int, repeats: int = 3) -> float:
+    from vlactl.models.parts.vision import random_shift
+
+    cfg = policy.config
+    processor = policy.processor
+    b = batch_size
+    images = torch.randint(0, 256, (b, len(cfg.cameras), cfg.image_size, cfg.image_size, 3), dtype=torch.uint8)
+    tokens, mask = processor.tokens([INSTRUCTION] * b)
+    batch = {
+        "images": random_shift(processor.images(images), 6),
+        "state": torch.randn(b, cfg.state_dim),
+        "tokens": tokens,
+        "text_mask": mask,
+        "actions": processor.actions(torch.rand(b, cfg.chunk_size, cfg.action_dim) * 2 - 1),
+        "action_pad": torch.zeros(b, cfg.chunk_size, dtype=torch.bool),
+    }
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=1e-4)
+    policy.train()
+
+    def step():
+        loss, _ = policy(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    torch.set_num_threads(1)
+    _, cpu_ms = time_ms(step, repeats)
+    policy.eval()
+    return cpu_ms / 1000
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", nargs="*", default=[], help="checkpoint folders (default: fresh models)")
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--batch", type=int, default=32, help="batch size of the timed training step (0: skip)")
+    args = parser.parse_args()
+    policies = [load_policy(p) for p in args.checkpoint] or [default_policy(name) for name in MODELS]
+    print(f"{'model':15s} {'params':>8s} {'ckpt MB':>8s} {'chunk/replan':>12s} {'ms/step 1t':>10s} {'(cpu)':>6s} "
+          f"{'ms/step 2t':>10s} {'capture all':>11s} {'train s/step':>12s}")
+    for policy in policies:
+        obs = observation(policy.config)
+        with tempfile.TemporaryDirectory() as tmp:
+            policy.save_pretrained(Path(tmp))
+            mb = (Path(tmp) / WEIGHTS_FILE).stat().st_size / 2**20
+        def predict():
+            policy.predict_action_chunk(obs)
+
+        def captured():
+            with capture(policy, policy.layer_names()):
+                policy.predict_action_chunk(obs)
+
+        per_step = policy.replan_every
+        torch.set_num_threads(2)
+        two, _ = time_ms(predict, args.repeats)
+        torch.set_num_threads(1)
+        one, one_cpu = time_ms(predict, args.repeats)
+        _, captured_cpu = time_ms(captured, args.repeats)
+        step = train_step_s(policy, args.batch) if args.batch else float("nan")
+        params = sum(p.numel() for p in policy.parameters()) / 1e6
+        print(f"{policy.name:15s} {params:7.2f}M {mb:8.1f} {policy.chunk_size:>6d}/{per_step:<5d} "
+              f"{one / per_step:10.1f} {one_cpu / per_step:6.1f} {two / per_step:10.1f} "
+              f"{100 * (captured_cpu / one_cpu - 1):+10.0f}% {step:12.3f}")
+    print("ms/step: one predict_action_chunk over the actions executed from it (replan_every), wall and (cpu) time, "
+          f"median of {args.repeats}; capture all: extra CPU time with every layer captured; "
+          f"train: CPU s per step, batch {args.batch}, 1 thread")
+
+
+if __name__ == "__main__":
+    main()
