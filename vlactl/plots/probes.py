@@ -13,6 +13,7 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")  # files only; no display on these machines
+import matplotlib.ticker  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
@@ -39,7 +40,7 @@ def _save(fig, out: Path, name: str, formats, dpi) -> list[Path]:
     paths = []
     for fmt in formats:
         with atomic_path(out / f"{name}.{fmt}") as tmp:
-            fig.savefig(tmp, format=fmt, dpi=dpi, bbox_inches="tight")
+            fig.savefig(tmp, format=fmt, dpi=dpi)
         paths.append(out / f"{name}.{fmt}")
     plt.close(fig)
     return paths
@@ -146,6 +147,8 @@ def figure_robustness(table: pd.DataFrame):
             ax.plot(part["layer_index"], part[f"robust_mean_{rho:g}"], color=colour, label=f"mean, {rho:g}||x||")
             ax.plot(part["layer_index"], part[f"robust_max_{rho:g}"], color=colour, ls=":", label=f"max, {rho:g}||x||")
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))  # mathtext labels are slow
+        ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())  # hundreds of minor ticks: slow, no help
         unit = "probability" if part["kind"].iloc[0] == LOGISTIC else "feature units"
         ax.set_title(f"{feature} ({unit})", fontsize=9)
         ax.tick_params(labelsize=7)

@@ -101,7 +101,8 @@ class ActivationWriter:
             raise ValueError(f"labels lack columns {missing}")
         chunk = {}
         for name in self.meta["layers"]:
-            arr = np.asarray(activations[name]).astype(self.meta["dtype"], copy=False)
+            with np.errstate(over="ignore"):  # overflow shows up as inf, refused just below
+                arr = np.asarray(activations[name]).astype(self.meta["dtype"], copy=False)
             if arr.shape != (len(labels), self.meta["widths"][name]):
                 raise ValueError(f"layer {name}: got shape {arr.shape}, expected ({len(labels)}, {self.meta['widths'][name]})")
             if not np.isfinite(arr).all():

@@ -138,7 +138,8 @@ def fit_probes(
     cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64)
     reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
     if reg:
-        fit = fit_ridge(z, labels[:, reg], np.bincount(folds).tolist(), torch.tensor(settings.ridge_grid))
+        grid = torch.tensor(settings.ridge_grid, dtype=torch.float64)
+        fit = fit_ridge(z, labels[:, reg], np.bincount(folds).tolist(), grid)
         w[:, :, reg], b[:, reg], lam[:, reg], cv_r2[:, reg] = fit.weight, fit.bias, fit.lam, fit.cv_r2
     for i, kind in enumerate(kinds):
         if kind == LOGISTIC:

@@ -1,0 +1,78 @@
+"""`vlactl train-probes` and `vlactl plot probes` end to end on a tiny activation folder; bad input is one line.
+
+One real subprocess for the whole CLI; the other cases call the same `main()` in-process (a fresh interpreter costs
+seconds of imports on these machines)."""
+
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+from synthetic_activations import write_store
+
+from vlactl import cli
+from vlactl.steering.activations import FEATURES
+from vlactl.steering.probe_file import load_probe
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "vlactl.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+def run_here(monkeypatch, capsys, *args) -> tuple[int, str]:
+    """`vlactl <args>` through cli.main in this process: (exit code, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["vlactl", *args])
+    with pytest.raises(SystemExit) as done:
+        cli.main()
+    return done.value.code, capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def acts(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("acts") / "run1"
+    data = write_store(folder, n_episodes=24, frames=25, d=32)
+    return folder, data
+
+
+def test_train_probes_then_plot(acts, tmp_path, monkeypatch, capsys):
+    folder, data = acts
+    out = tmp_path / "probes"
+    res = run("train-probes", "--activations", str(folder), "--output-dir", str(out), "layer_batch=3")
+    assert res.returncode == 0, res.stderr
+    table = pd.read_parquet(out / "metrics.parquet")
+    assert len(table) == 4 * len(FEATURES) and set(table["feature"]) == set(FEATURES)
+    assert (out / "config.yaml").is_file()
+    reg = table[table["kind"] == "regression"]
+    planted = data.planted[reg["layer_index"], [FEATURES.index(f) for f in reg["feature"]]]
+    assert (reg["r2"][planted] > 0.6).all() and (reg["r2"][~planted] < 0.3).all()
+    for column in ("mae", "baseline_mae", "robust_mean_0.05", "robust_max_0.1", "cv_r2", "penalty"):
+        assert reg[column].notna().all()
+    log = table[table["kind"] == "logistic"]
+    assert set(log["feature"]) == {"gripper", "gripper_action"} and log["baseline_accuracy"].notna().all()
+    probe = load_probe(out / table["probe"].iloc[0], model="synthetic", width=32, pooling="prefix")
+    assert probe.layer == table["layer"].iloc[0] and probe.metrics["mae"] == pytest.approx(table["mae"].iloc[0])
+
+    code, err = run_here(monkeypatch, capsys, "plot", "probes", "--run-dir", str(out))
+    assert code == 0, err
+    for name in ("fig1_best_layer", "layers_r2", "layers_mae", "layers_accuracy", "layers_robustness"):
+        assert (out / "figures" / f"{name}.png").stat().st_size > 0
+        assert (out / "figures" / f"{name}.pdf").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["train-probes"], "activations="),
+    (["train-probes", "activations=/nowhere"], "/nowhere"),
+    (["train-probes", "@ACTS", "layers=[backbone.9]"], "backbone.9"),
+    (["train-probes", "@ACTS", "features=[elbow]"], "elbow"),
+    (["train-probes", "@ACTS", "test_fraction=1.5"], "test_fraction"),
+    (["train-probes", "@ACTS", "cv_folds=40"], "episodes"),
+    (["train-probes", "@ACTS", "output_dir=/proc/vlactl-cannot-write"], "/proc/vlactl-cannot-write"),
+    (["plot", "probes"], "run_dir="),
+    (["plot", "probes", "run_dir=/nowhere"], "/nowhere"),
+])
+def test_bad_input_is_one_line_and_exit_2(acts, monkeypatch, capsys, args, needle):
+    folder, _ = acts
+    code, err = run_here(monkeypatch, capsys, *[f"activations={folder}" if a == "@ACTS" else a for a in args])
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], err
