@@ -3,8 +3,8 @@
 Objective per layer: sum_i [softplus(s_i) - y_i s_i] + l2/2 ||w||^2 with s_i = z_i.w + b (intercept unpenalised),
 the objective of scikit-learn's LogisticRegression with C = 1 / l2.
 
-Each step uses the exact Hessian Z^T diag(p(1-p)) Z (one weighted Gram matrix per layer, one batched matmul) and a
-line search that is free: logits are linear in the parameters, so s + t Z.delta for every trial step length t costs
+Each step uses the exact Hessian Z^T diag(p(1-p)) Z (one weighted Gram matrix per layer) and a line search that is
+free: logits are linear in the parameters, so s + t Z.delta for every trial step length t costs
 no pass over the data. Trial lengths above 1 let the first steps grow the weights fast on separable layers.
 """
 
@@ -21,23 +21,17 @@ def _objective(s: torch.Tensor, y: torch.Tensor, w: torch.Tensor, l2: float) -> 
     return (F.softplus(s) - y * s).sum(-1, dtype=torch.float64) + 0.5 * l2 * w.double().square().sum(-1)
 
 
-def matvec(z: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """[L, n, p] x [L, p] -> [L, n]: one gemv per layer (MKL's batched gemm with one column is 3x slower)."""
-    return torch.stack([z[i] @ v[i] for i in range(len(z))])
-
-
-def rmatvec(z: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """[L, n, p]^T x [L, n] -> [L, p]."""
-    return torch.stack([r[i] @ z[i] for i in range(len(z))])
-
-
 def fit_logistic(
-    z: torch.Tensor, y: torch.Tensor, l2: float, steps: int = 20, tol: float = 1e-4
+    z: torch.Tensor, y: torch.Tensor, l2: float, steps: int = 20, tol: float = 1e-4, gram: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """z [L, n, p] float32 standardised inputs, y [n] in {0, 1} -> weights [L, p], intercepts [L] (float64).
 
-    Stops after the first step whose Newton decrement g^T H^-1 g is below tol * n in every layer: Newton converges
-    quadratically there, so the objective is then within a negligible fraction of its optimum.
+    gram: [Z 1]^T [Z 1] per layer [L, p + 1, p + 1] if the caller has it (the ridge fit does). Newton starts from
+    w = 0, where every row has the same weight p(1-p), so the first Hessian is that Gram matrix times p(1-p): free.
+
+    A layer stops after the first step whose Newton decrement g^T H^-1 g is below tol * n: Newton converges
+    quadratically there, so its objective is then within a negligible fraction of the optimum. Finished layers
+    drop out of the batch, so the Hessians, which dominate the cost, are built only for layers still moving.
     """
     n_layers, n, p = z.shape
     y = y.to(z.dtype)
@@ -48,29 +42,38 @@ def fit_logistic(
     penalty = torch.full((p + 1,), float(l2), dtype=torch.float64)
     penalty[p] = 0.0
     trial = torch.tensor(STEP_LENGTHS, dtype=torch.float64)
-    scratch = torch.empty_like(z)  # reused: a fresh [L, n, p] tensor per step costs as much as the matmul
+    scratch = torch.empty(n, p, dtype=z.dtype)  # reused: a fresh [n, p] tensor per Hessian costs as much as the product
+    moving = list(range(n_layers))
     for _ in range(steps):
-        prob = torch.sigmoid(s)
+        if not moving:
+            break
+        sm, wm = s[moving], w[moving]
+        prob = torch.sigmoid(sm)
         resid = prob - y
-        grad = torch.cat([rmatvec(z, resid).double() + l2 * w, resid.sum(-1, dtype=torch.float64)[:, None]], -1)
-        hess = _weighted_gram(z, prob * (1 - prob), scratch) + torch.diag(penalty)
-        delta = -torch.linalg.solve(hess, grad)  # [L, p + 1]
+        # per-layer products: z[moving] would copy the data, and MKL's batched one-column gemm is 3x slower than gemv
+        grad_w = torch.stack([resid[i] @ z[layer] for i, layer in enumerate(moving)]).double() + l2 * wm
+        grad = torch.cat([grad_w, resid.sum(-1, dtype=torch.float64)[:, None]], -1)
+        if gram is not None and len(moving) == n_layers and not bool(w.any()):
+            hess = gram * float(prior * (1 - prior))
+        else:
+            hess = torch.stack([_weighted_gram(z[layer], prob[i] * (1 - prob[i]), scratch) for i, layer in enumerate(moving)])
+        delta = -torch.linalg.solve(hess + torch.diag(penalty), grad)  # [M, p + 1]
         decrement = -(grad * delta).sum(-1)
         dw, db = delta[:, :p], delta[:, p]
-        ds = matvec(z, dw.to(z.dtype)) + db[:, None].to(z.dtype)
-        cand = _objective(s + trial[:, None, None].to(z.dtype) * ds, y, w + trial[:, None, None] * dw, l2)
-        t = trial[cand.argmin(0)]  # [L] the best trial length per layer
-        w, b, s = w + t[:, None] * dw, b + t * db, s + t[:, None].to(z.dtype) * ds
-        if bool((decrement < tol * n).all()):
-            break
+        ds = torch.stack([z[layer] @ dw[i].to(z.dtype) for i, layer in enumerate(moving)]) + db[:, None].to(z.dtype)
+        cand = _objective(sm + trial[:, None, None].to(z.dtype) * ds, y, wm + trial[:, None, None] * dw, l2)
+        t = trial[cand.argmin(0)]  # [M] the best trial length per layer
+        idx = torch.tensor(moving)
+        w[idx], b[idx], s[idx] = wm + t[:, None] * dw, b[idx] + t * db, sm + t[:, None].to(z.dtype) * ds
+        moving = [layer for layer, dec in zip(moving, decrement.tolist()) if dec >= tol * n]
     return w, b
 
 
 def _weighted_gram(z: torch.Tensor, d: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
-    """[Z 1]^T diag(d) [Z 1] per layer, [L, p + 1, p + 1] in float64."""
+    """[Z 1]^T diag(d) [Z 1] of one layer, [p + 1, p + 1] in float64."""
     root = d.sqrt()
-    a = torch.mul(z, root[..., None], out=scratch)
-    zz = torch.bmm(a.mT, a).double()
-    zd = rmatvec(a, root).double()[:, :, None]  # Z^T d
-    dd = d.sum(-1, dtype=torch.float64)[:, None, None]
-    return torch.cat([torch.cat([zz, zd], -1), torch.cat([zd.mT, dd], -1)], -2)
+    a = torch.mul(z, root[:, None], out=scratch)
+    zz = (a.T @ a).double()
+    zd = (root @ a).double()[:, None]  # Z^T d
+    dd = d.sum(dtype=torch.float64).reshape(1, 1)
+    return torch.cat([torch.cat([zz, zd], 1), torch.cat([zd.T, dd], 1)], 0)

@@ -137,13 +137,17 @@ def fit_probes(
     lam = torch.full((n_layers, n_feat), float(settings.logistic_l2), dtype=torch.float64)
     cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64)
     reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
+    gram = None
     if reg:
         grid = torch.tensor(settings.ridge_grid, dtype=torch.float64)
         fit = fit_ridge(z, labels[:, reg], np.bincount(folds).tolist(), grid)
         w[:, :, reg], b[:, reg], lam[:, reg], cv_r2[:, reg] = fit.weight, fit.bias, fit.lam, fit.cv_r2
+        gram = fit.moments.augmented_gram()  # the logistic probes' first Hessian, up to a constant
     for i, kind in enumerate(kinds):
         if kind == LOGISTIC:
-            w[:, :, i], b[:, i] = fit_logistic(z, labels[:, i], settings.logistic_l2, settings.newton_steps)
+            w[:, :, i], b[:, i] = fit_logistic(
+                z, labels[:, i], settings.logistic_l2, settings.newton_steps, gram=gram
+            )
     if basis is not None:
         w = basis @ w
     weight = (w / std[:, :, None]).mT.contiguous()  # fold the standardisation in: w.(x - mean)/std + b

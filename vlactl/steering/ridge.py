@@ -44,6 +44,12 @@ class Moments:
     def __add__(self, o: "Moments") -> "Moments":
         return Moments(self.n + o.n, self.sz + o.sz, self.zz + o.zz, self.zy + o.zy, self.sy + o.sy, self.yy + o.yy)
 
+    def augmented_gram(self) -> torch.Tensor:
+        """[Z 1]^T [Z 1] per layer, [L, p + 1, p + 1]."""
+        top = torch.cat([self.zz, self.sz[:, :, None]], -1)
+        bottom = torch.cat([self.sz[:, None, :], torch.full_like(self.sz[:, :1, None], self.n)], -1)
+        return torch.cat([top, bottom], -2)
+
     def __sub__(self, o: "Moments") -> "Moments":
         return Moments(self.n - o.n, self.sz - o.sz, self.zz - o.zz, self.zy - o.zy, self.sy - o.sy, self.yy - o.yy)
 
@@ -90,6 +96,7 @@ class RidgeFit:
     bias: torch.Tensor  # [L, F]
     lam: torch.Tensor  # [L, F] the chosen penalty
     cv_r2: torch.Tensor  # [L, F] cross-validated R^2 at that penalty (1 - SSE / SSE of the fold-train mean)
+    moments: Moments  # of all training rows
 
 
 def fit_ridge(z: torch.Tensor, y: torch.Tensor, fold_sizes: list[int], grid: torch.Tensor) -> RidgeFit:
@@ -110,4 +117,4 @@ def fit_ridge(z: torch.Tensor, y: torch.Tensor, fold_sizes: list[int], grid: tor
     lam = grid.flatten()[best]
     w, b = RidgePath(total).solve(lam)
     cv_r2 = 1 - cv_sse.gather(0, best[None])[0] / base_sse
-    return RidgeFit(weight=w, bias=b, lam=lam, cv_r2=cv_r2)
+    return RidgeFit(weight=w, bias=b, lam=lam, cv_r2=cv_r2, moments=total)
