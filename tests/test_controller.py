@@ -129,9 +129,11 @@ def test_incompatible_boxes_are_flagged():
     assert not bool(c.feasible.any())
 
 
-def test_empty_box_is_refused():
+def test_empty_box_and_zero_probe_are_refused():
     with pytest.raises(ValueError, match="empty box"):
         box_control(torch.zeros(1, 2), torch.ones(2), 0.0, 1.0, -1.0)
+    with pytest.raises(ValueError, match="zero weight"):
+        multi_box_control(torch.zeros(1, 2), torch.zeros(1, 2), 0.0, -1.0, 1.0)
 
 
 @settings(max_examples=100, deadline=None)

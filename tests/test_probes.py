@@ -105,7 +105,8 @@ def test_probe_reading_is_linear_in_the_raw_representation(planted):
     z = (x - probes.mean[1]) / probes.std[1]
     w_std = probe.weight * probes.std[1]  # the standardised-space weights, unfolded
     torch.testing.assert_close(probe.reading(x), z @ w_std + probe.bias + probe.weight @ probes.mean[1])
-    torch.testing.assert_close(probe.reading(x), probes.readings(torch.from_numpy(data.x[:, :5]))[1, :, 0])
+    batched = probes.readings(torch.from_numpy(data.x[:, :5]))[1, :, 0]  # multiplied in float32
+    torch.testing.assert_close(probe.reading(x), batched, rtol=1e-5, atol=1e-5)
 
 
 def test_robustness_grows_linearly_with_the_perturbation_for_regression(planted):

@@ -103,10 +103,11 @@ class ActivationWriter:
         for name in self.meta["layers"]:
             with np.errstate(over="ignore"):  # overflow shows up as inf, refused just below
                 arr = np.asarray(activations[name]).astype(self.meta["dtype"], copy=False)
-            if arr.shape != (len(labels), self.meta["widths"][name]):
-                raise ValueError(f"layer {name}: got shape {arr.shape}, expected ({len(labels)}, {self.meta['widths'][name]})")
+            expected = (len(labels), self.meta["widths"][name])
+            if arr.shape != expected:
+                raise ValueError(f"layer {name}: got shape {arr.shape}, expected {expected}")
             if not np.isfinite(arr).all():
-                raise ValueError(f"layer {name}: non-finite activations (out of {self.meta['dtype']} range? use float32)")
+                raise ValueError(f"layer {name}: non-finite values (beyond {self.meta['dtype']}'s range? use float32)")
             chunk[name] = arr
         self._chunks.append((chunk, labels.reset_index(drop=True)))
         self._buffered += len(labels)

@@ -49,15 +49,17 @@ def _result(x: torch.Tensor, w: torch.Tensor, b: torch.Tensor, u: torch.Tensor, 
     return Control(u=u, before=before, after=after, norm=norm, active=norm > 0, feasible=ok)
 
 
-def _check_boxes(lo: torch.Tensor, hi: torch.Tensor) -> None:
+def _check(w: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> None:
     if bool((lo > hi).any()):
         raise ValueError(f"empty box: zmin {lo.tolist()} > zmax {hi.tolist()}")
+    if bool((w.norm(dim=-1) == 0).any()):
+        raise ValueError("a probe with zero weight cannot steer its reading")
 
 
 def box_control(x: torch.Tensor, w: torch.Tensor, b, zmin=-torch.inf, zmax=torch.inf) -> Control:
     """Eq. 7 for one probe: x [B, d], w [d], scalar bias and bounds (either bound may be infinite)."""
     xd, wd, bd, lo, hi = _float64(x, w, b, zmin, zmax)
-    _check_boxes(lo, hi)
+    _check(wd, lo, hi)
     zeta = (xd @ wd.mT + bd)[:, 0]
     target = torch.minimum(torch.maximum(zeta, lo), hi)
     u = ((target - zeta) / wd.square().sum())[:, None] * wd
@@ -67,7 +69,7 @@ def box_control(x: torch.Tensor, w: torch.Tensor, b, zmin=-torch.inf, zmax=torch
 def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: float = 1e-9) -> Control:
     """The exact minimum-norm u for k probes at once: x [B, d], w [k, d], b, zmin, zmax [k] (bounds may be inf)."""
     xd, wd, bd, lo, hi = _float64(x, w, b, zmin, zmax)
-    _check_boxes(lo, hi)
+    _check(wd, lo, hi)
     k = wd.shape[0]
     if k > MAX_PROBES:
         raise ValueError(f"at most {MAX_PROBES} probes can be controlled on one layer, got {k}")

@@ -30,8 +30,9 @@ def fit_logistic(
     w = 0, where every row has the same weight p(1-p), so the first Hessian is that Gram matrix times p(1-p): free.
 
     A layer stops after the first step whose Newton decrement g^T H^-1 g is below tol * n: Newton converges
-    quadratically there, so its objective is then within a negligible fraction of the optimum. Finished layers
-    drop out of the batch, so the Hessians, which dominate the cost, are built only for layers still moving.
+    quadratically there, so its objective is then within a negligible fraction of the optimum. Hessians dominate the
+    cost, so a layer gets a new one only when the decrement measured with its last one is not yet below tol * n (that
+    last step is then taken with the old Hessian), and finished layers drop out of the batch.
     """
     n_layers, n, p = z.shape
     y = y.to(z.dtype)
@@ -39,32 +40,43 @@ def fit_logistic(
     w = torch.zeros(n_layers, p, dtype=torch.float64)
     b = torch.full((n_layers,), float(torch.log(prior / (1 - prior))), dtype=torch.float64)
     s = torch.full((n_layers, n), float(b[0]), dtype=z.dtype)
-    penalty = torch.full((p + 1,), float(l2), dtype=torch.float64)
-    penalty[p] = 0.0
+    penalty = torch.diag(torch.tensor([float(l2)] * p + [0.0], dtype=torch.float64))
+    hess = torch.zeros(n_layers, p + 1, p + 1, dtype=torch.float64)  # per layer, its latest Hessian,
+    state = torch.zeros(n_layers, dtype=torch.int8)  # which is 0: not built yet, 1: from an earlier point, 2: current
+    if gram is not None:
+        hess, state[:] = gram * float(prior * (1 - prior)) + penalty, 2
     trial = torch.tensor(STEP_LENGTHS, dtype=torch.float64)
     scratch = torch.empty(n, p, dtype=z.dtype)  # reused: a fresh [n, p] tensor per Hessian costs as much as the product
     moving = list(range(n_layers))
     for _ in range(steps):
         if not moving:
             break
-        sm, wm = s[moving], w[moving]
+        idx = torch.tensor(moving)
+        sm, wm = s[idx], w[idx]
         prob = torch.sigmoid(sm)
         resid = prob - y
         # per-layer products: z[moving] would copy the data, and MKL's batched one-column gemm is 3x slower than gemv
         grad_w = torch.stack([resid[i] @ z[layer] for i, layer in enumerate(moving)]).double() + l2 * wm
         grad = torch.cat([grad_w, resid.sum(-1, dtype=torch.float64)[:, None]], -1)
-        if gram is not None and len(moving) == n_layers and not bool(w.any()):
-            hess = gram * float(prior * (1 - prior))
-        else:
-            hess = torch.stack([_weighted_gram(z[layer], prob[i] * (1 - prob[i]), scratch) for i, layer in enumerate(moving)])
-        delta = -torch.linalg.solve(hess + torch.diag(penalty), grad)  # [M, p + 1]
+        delta = torch.zeros_like(grad)
+        built = [i for i, layer in enumerate(moving) if state[layer] > 0]
+        if built:
+            delta[built] = -torch.linalg.solve(hess[idx[built]], grad[built])
         decrement = -(grad * delta).sum(-1)
+        # a new Hessian unless the layer has its current one, or its old one already gives the last step
+        last = decrement < tol * n
+        renew = [i for i, layer in enumerate(moving) if state[layer] == 0 or state[layer] == 1 and not last[i]]
+        for i in renew:
+            hess[moving[i]] = _weighted_gram(z[moving[i]], prob[i] * (1 - prob[i]), scratch) + penalty
+        if renew:
+            delta[renew] = -torch.linalg.solve(hess[idx[renew]], grad[renew])
+            decrement = -(grad * delta).sum(-1)
         dw, db = delta[:, :p], delta[:, p]
         ds = torch.stack([z[layer] @ dw[i].to(z.dtype) for i, layer in enumerate(moving)]) + db[:, None].to(z.dtype)
         cand = _objective(sm + trial[:, None, None].to(z.dtype) * ds, y, wm + trial[:, None, None] * dw, l2)
         t = trial[cand.argmin(0)]  # [M] the best trial length per layer
-        idx = torch.tensor(moving)
         w[idx], b[idx], s[idx] = wm + t[:, None] * dw, b[idx] + t * db, sm + t[:, None].to(z.dtype) * ds
+        state[idx] = 1  # every moving layer now holds a Hessian, from before this step
         moving = [layer for layer, dec in zip(moving, decrement.tolist()) if dec >= tol * n]
     return w, b
 

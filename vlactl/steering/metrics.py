@@ -53,9 +53,10 @@ def robustness(
 ) -> dict[str, torch.Tensor]:
     """Remark 1: the change |f(x + eps) - f(x)| of each probe's output under random perturbations eps.
 
-    x [L, n, d] raw representations; ||eps|| = rho ||x|| for each relative norm rho, in `directions` random directions
-    per layer (uniform on the sphere), for up to `rows` random frames x every direction. The output f is the reading for regression
-    probes and the probability sigmoid(logit) for logistic ones. Returns mean and max, [L, F] each, per rho.
+    x [L, n, d] raw representations; ||eps|| = rho ||x|| for each relative norm rho, in `directions` random
+    directions per layer (uniform on the sphere), for up to `rows` random frames x every direction. The output f is
+    the reading for regression probes and the probability sigmoid(logit) for logistic ones. Returns mean and max,
+    [L, F] each, per rho.
     """
     gen = torch.Generator().manual_seed(seed)
     n_layers, n, d = x.shape

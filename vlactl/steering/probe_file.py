@@ -47,7 +47,9 @@ def load_probe(path: Path, *, model: str | None = None, width: int | None = None
         raise UsageError(f"{str(path)!r} is not a readable safetensors file ({exc})") from None
     if meta.get("format") != FORMAT:
         raise UsageError(f"{str(path)!r} is not a vlactl probe (format {meta.get('format')!r})")
-    checks = [("model", model, meta["model"]), ("pooling", pooling, meta["pooling"]), ("width", width, int(meta["width"]))]
+    checks = [
+        ("model", model, meta["model"]), ("pooling", pooling, meta["pooling"]), ("width", width, int(meta["width"])),
+    ]
     for name, wanted, have in checks:
         if wanted is not None and wanted != have:
             raise UsageError(f"probe {path.name} was trained with {name} {have!r}, but this run has {name} {wanted!r}")

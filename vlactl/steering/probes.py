@@ -73,11 +73,11 @@ class LinearProbes:
     kinds: list[str]  # per feature: "regression" or "logistic"
     lam: torch.Tensor  # [L, F] penalty used (chosen by CV for ridge, fixed for logistic)
     cv_r2: torch.Tensor  # [L, F] cross-validated R^2 for ridge probes, NaN for logistic
-    extra: dict = field(default_factory=dict)
 
     def readings(self, x: torch.Tensor) -> torch.Tensor:
-        """x [L, n, d] -> [L, n, F] (logits for logistic probes), in float64."""
-        return torch.einsum("lnd,lfd->lnf", x.double(), self.weight) + self.bias[:, None, :]
+        """x [L, n, d] -> [L, n, F] (logits for logistic probes) as float64, multiplied in x's dtype: enough for
+        metrics, and a float64 copy of a whole test set would cost more than the product."""
+        return torch.bmm(x, self.weight.to(x.dtype).mT).double() + self.bias[:, None, :]
 
     def probe(self, li: int, fi: int, /, **about) -> Probe:
         """The probe of layer li and feature fi; `about` names it (feature, layer, model, pooling, ...)."""

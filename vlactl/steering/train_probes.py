@@ -90,6 +90,8 @@ def run_train_probes(cfg: DictConfig) -> Path:
     for i in sorted(set(range(len(features))) - set(keep)):
         print(f"warning: skipping {features[i]}: one class only in the training episodes", file=sys.stderr)
     features, kinds, y = [features[i] for i in keep], [kinds[i] for i in keep], y[:, keep]
+    if not features:
+        raise UsageError("no feature left to probe: every chosen binary feature has one class only in training")
 
     run = cfg.run or resolve_path(cfg.activations).name
     out = resolve_path(cfg.output_dir) if cfg.output_dir else REPO_ROOT / "outputs" / "probes" / run
