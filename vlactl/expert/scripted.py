@@ -34,6 +34,8 @@ class ExpertConfig:
     lift_check: float = 0.04  # the object must rise this much, else re-grasp
     max_regrasps: int = 3
     rim_inset: float = 0.005  # grip site this far inside the rim's outer edge: the fingers straddle the wall evenly
+    comfortable_reach: float = 0.72  # horizontal distance from the robot base beyond which grasps are penalised
+    reach_weight: float = 0.5  # score per metre beyond it (clearance scores saturate at 0.05)
     rim_depth: float = 0.02  # grip site below a bowl's rim top; deeper and the inner finger meets the sloped wall
 
 
@@ -85,6 +87,7 @@ class ScriptedExpert:
         self.dest_shape = object_shape(sim.model, sim.data, self.destination)
         self.is_bowl = "bowl" in target
         self.start_quat = np.asarray(obs.raw["robot0_eef_quat"], dtype=np.float64)
+        self.base = np.array(sim.data.body_xpos[sim.model.body_name2id("robot0_base")])
         self.obstacles = obstacle_boxes(sim.model, sim.data, [object_body(sim.model, self.target)])
         self.phase, self.timer, self.regrasps, self.failed = "approach", 0, 0, []
         self.integral = np.zeros(3)
@@ -122,11 +125,17 @@ class ScriptedExpert:
             depth = min(0.03, 0.8 * (top - bottom))
             candidates = [(yaw, np.zeros(3), np.array([centre[0], centre[1], top - depth]))]
         # A grasp that already failed goes to the back of the queue: re-grasps try the next-best rim point.
-        scores = [self._hand_clearance(point, yaw) - self.failed.count(i) for i, (yaw, _, point) in enumerate(candidates)]
+        # Points beyond the arm's comfortable reach lose too: the Panda cannot get over the table's far edge.
+        scores = [self._hand_clearance(point, yaw) - self._reach_penalty(point) - self.failed.count(i)
+                  for i, (yaw, _, point) in enumerate(candidates)]
         self.candidate = int(np.argmax(scores))
         self.grasp_yaw, self.grasp_offset, self.grasp_point = candidates[self.candidate]
         self.grasp_height_above_obj = self.grasp_point[2] - pos[2]
         self.obj_start_z = pos[2]
+
+    def _reach_penalty(self, point: np.ndarray) -> float:
+        reach = np.linalg.norm(point[:2] - self.base[:2])
+        return self.cfg.reach_weight * max(0.0, reach - self.cfg.comfortable_reach)
 
     def _hand_clearance(self, grasp_point: np.ndarray, yaw: float) -> float:
         """How far the gripper stays from obstacles while descending onto `grasp_point` (soft score, higher is better).
@@ -181,10 +190,13 @@ class ScriptedExpert:
         close = lambda p: np.linalg.norm(p - eef) < cfg.tolerance  # noqa: E731
 
         if self.phase == "approach":
-            above = np.array([*self.grasp_point[:2], travel])
-            if eef[2] < travel - 0.03 and np.linalg.norm(above[:2] - eef[:2]) > 0.02:
-                above = np.array([eef[0], eef[1], travel])  # rise first, then move across
-            if close(np.array([*self.grasp_point[:2], travel])) or (np.linalg.norm(self.grasp_point[:2] - eef[:2]) < 0.01 and eef[2] >= travel - 0.03):
+            remaining = np.linalg.norm(self.grasp_point[:2] - eef[:2])
+            # Near the object, come down: the far side of the table is out of reach at full travel height.
+            hover = travel if remaining > 0.1 else min(travel, self.grasp_point[2] + 0.1)
+            above = np.array([*self.grasp_point[:2], hover])
+            if eef[2] < hover - 0.03 and remaining > 0.02:
+                above = np.array([eef[0], eef[1], hover])  # rise first, then move across
+            if (remaining < 0.01 and eef[2] >= hover - 0.03) or self.timer > 60:
                 self._go("descend")
             return self._servo(eef, above, OPEN, self.grasp_yaw)
         if self.phase == "descend":
@@ -195,11 +207,15 @@ class ScriptedExpert:
             return self._servo(eef, self.grasp_point, grip, self.grasp_yaw)
         if self.phase == "close":
             if self.timer >= cfg.close_steps:
+                self.lift_start_z = eef[2]
                 self._go("lift")
             return self._servo(eef, self.grasp_point, CLOSE, self.grasp_yaw)
         if self.phase == "lift":
             target = np.array([eef[0], eef[1], travel])
-            if obj_pos[2] - self.obj_start_z > cfg.lift_check:
+            # Held if the object rises with the hand; relative, because over the tall cabinet the arm is near the top
+            # of its reach and cannot lift far.
+            hand_rise, obj_rise = eef[2] - self.lift_start_z, obj_pos[2] - self.obj_start_z
+            if obj_rise > cfg.lift_check or (hand_rise > 0.025 and obj_rise > 0.7 * hand_rise):
                 self._go("carry")
             elif self.timer > 25:
                 if self.regrasps < cfg.max_regrasps:
