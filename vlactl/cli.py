@@ -150,9 +150,10 @@ def main() -> None:
     except UsageError as exc:
         typer.echo(f"error: {exc}", err=True)
         sys.exit(2)
-    except KeyboardInterrupt:
-        typer.echo("interrupted; re-run the same command to resume", err=True)
-        sys.exit(130)
+    except SystemExit as exc:
+        if exc.code == 130:  # Typer turns Ctrl-C into a silent exit 130
+            typer.echo("interrupted; re-run the same command to resume", err=True)
+        raise
 
 
 if __name__ == "__main__":

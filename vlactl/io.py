@@ -10,6 +10,9 @@ from pathlib import Path
 
 from vlactl.errors import UsageError
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
+
 
 @contextmanager
 def atomic_path(path: Path):
@@ -17,6 +20,7 @@ def atomic_path(path: Path):
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes it owner-only; results are for everyone who may read the folder
     os.close(fd)
     try:
         yield Path(tmp)
@@ -40,8 +44,9 @@ def atomic_write_parquet(path: Path, df) -> None:
         df.to_parquet(tmp, index=False)
 
 
-def ensure_writable_dir(path: Path, requested: Path | None = None) -> Path:
-    """Create `path` if needed and check that we can write there; a UsageError naming `requested` otherwise."""
+def ensure_writable_dir(path: Path, requested: Path | None = None, key: str = "output_dir") -> Path:
+    """Create `path` if needed and check that we can write there; a UsageError naming `requested` and the config
+    `key` that sets it otherwise."""
     path = Path(path)
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -49,7 +54,7 @@ def ensure_writable_dir(path: Path, requested: Path | None = None) -> Path:
         probe.close()
     except OSError as exc:
         shown = str(requested or path)
-        raise UsageError(f"output folder {shown!r} is not writable ({exc.strerror}); choose another with output_dir=...") from None
+        raise UsageError(f"output folder {shown!r} is not writable ({exc.strerror}); choose another with {key}=...") from None
     return path
 
 

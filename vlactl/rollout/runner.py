@@ -91,7 +91,7 @@ def run_dir(cfg: DictConfig) -> Path:
     `scripted_libero_spatial`. Fails early if the root is not writable."""
     name = cfg.run_name or f"{re.sub(r'[^A-Za-z0-9._-]+', '-', str(cfg.model)).strip('-.')}_{cfg.suite}"
     root = resolve_path(cfg.output_root)
-    return ensure_writable_dir(root, requested=root) / name
+    return ensure_writable_dir(root, requested=root, key="output_root") / name
 
 
 def _check_same_run(cfg: DictConfig, out: Path) -> None:
