@@ -6,7 +6,7 @@ PIP := $(BIN)/python -m pip --disable-pip-version-check -q
 export HF_HUB_OFFLINE := 1
 export MUJOCO_GL ?= egl
 
-.PHONY: install system-deps demo test test-slow bench clean-venv
+.PHONY: install system-deps demo policies test test-slow bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,18 @@ install: $(BIN)/python system-deps
 demo: install
 	$(BIN)/vlactl tasks --suite libero_spatial
 	$(BIN)/vlactl demos suite=libero_spatial tasks=[0] episodes_per_task=2 workers=1 output_dir=outputs/demo/libero_spatial
+
+# Rebuild the shipped embedded models from scratch: the full libero_spatial demo set, then each model trained with
+# its own config (conf/model/<name>.yaml; about 2 h each on 2 CPU cores), its checkpoint copied into data/policies/.
+# Every step resumes where it stopped when re-run.
+POLICIES ?= hybrid autoregressive
+policies: install
+	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=50 workers=2
+	for m in $(POLICIES); do \
+	  $(BIN)/vlactl train-policy model=$$m dataset=data/demos/libero_spatial output_dir=outputs/policies/$$m || exit 1; \
+	  rm -rf data/policies/$$m.new && cp -r outputs/policies/$$m/checkpoint data/policies/$$m.new && \
+	  rm -rf data/policies/$$m && mv data/policies/$$m.new data/policies/$$m; \
+	done
 
 test:
 	$(BIN)/python -m pytest -q

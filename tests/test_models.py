@@ -87,9 +87,23 @@ def test_registry_names_and_errors(tmp_path, monkeypatch):
     assert load_policy(RANDOM).name == "hybrid"
     with pytest.raises(UsageError, match="allowed"):
         load_policy("no-such-model")
-    monkeypatch.setattr(registry, "DEFAULT_RUN_DIR", str(tmp_path / "{name}"))
+    monkeypatch.setattr(registry, "DEFAULT_RUN_DIR", str(tmp_path / "runs" / "{name}"))
+    monkeypatch.setattr(registry, "SHIPPED_DIR", str(tmp_path / "shipped" / "{name}"))
     with pytest.raises(UsageError, match="train-policy"):
         load_policy("hybrid")
+
+
+def test_model_name_prefers_own_training_run_over_shipped(tmp_path, monkeypatch):
+    from vlactl.models import registry
+
+    monkeypatch.setattr(registry, "DEFAULT_RUN_DIR", str(tmp_path / "runs" / "{name}"))
+    monkeypatch.setattr(registry, "SHIPPED_DIR", str(tmp_path / "shipped" / "{name}"))
+    for folder in (tmp_path / "shipped" / "hybrid", tmp_path / "runs" / "hybrid" / "checkpoint"):
+        folder.mkdir(parents=True)
+    tiny_policy("hybrid").save_pretrained(tmp_path / "shipped" / "hybrid")
+    assert registry.resolve_checkpoint("hybrid") == tmp_path / "shipped" / "hybrid"
+    tiny_policy("hybrid").save_pretrained(tmp_path / "runs" / "hybrid" / "checkpoint")
+    assert registry.resolve_checkpoint("hybrid") == tmp_path / "runs" / "hybrid" / "checkpoint"
 
 
 @pytest.mark.parametrize("name", list(MODELS))

@@ -17,6 +17,7 @@ MODELS = {
 }
 RANDOM = "random"
 DEFAULT_RUN_DIR = "outputs/policies/{name}"  # where `vlactl train-policy model=<name>` writes by default
+SHIPPED_DIR = "data/policies/{name}"  # the checkpoints that come with the repository (`make policies` rebuilds them)
 CHECKPOINT_DIR = "checkpoint"  # inside a training run folder
 
 
@@ -38,21 +39,34 @@ def checkpoint_folder(path: Path) -> Path | None:
 
 
 def load_policy(name_or_path: str):
-    from vlactl.config import resolve_path
     from vlactl.models.parts.policy import read_model_name
 
     if name_or_path == RANDOM:
         return tiny_policy("hybrid")
-    path = resolve_path(DEFAULT_RUN_DIR.format(name=name_or_path) if name_or_path in MODELS else name_or_path)
-    folder = checkpoint_folder(path)
-    if folder is None:
-        if name_or_path in MODELS:
-            raise UsageError(
-                f"no trained {name_or_path} checkpoint at {path}; train one with "
-                f"`vlactl train-policy model={name_or_path} dataset=<demos>` or pass a checkpoint path"
-            )
-        raise UsageError(f"unknown model {name_or_path!r}; allowed: {', '.join(MODELS)}, {RANDOM}, or a checkpoint path")
+    folder = resolve_checkpoint(name_or_path)
     return policy_class(read_model_name(folder)).from_pretrained(folder)
+
+
+def resolve_checkpoint(name_or_path: str) -> Path:
+    """The checkpoint folder a model name or path stands for. A name means the user's own training run if there is
+    one (`vlactl train-policy model=<name>` writes it), else the shipped checkpoint."""
+    from vlactl.config import resolve_path
+
+    if name_or_path not in MODELS:
+        folder = checkpoint_folder(resolve_path(name_or_path))
+        if folder is None:
+            raise UsageError(
+                f"unknown model {name_or_path!r}; allowed: {', '.join(MODELS)}, {RANDOM}, or a checkpoint path"
+            )
+        return folder
+    places = [resolve_path(d.format(name=name_or_path)) for d in (DEFAULT_RUN_DIR, SHIPPED_DIR)]
+    for place in places:
+        if (folder := checkpoint_folder(place)) is not None:
+            return folder
+    raise UsageError(
+        f"no trained {name_or_path} checkpoint in {places[0]} or {places[1]}; train one with "
+        f"`vlactl train-policy model={name_or_path} dataset=<demos>` or pass a checkpoint path"
+    )
 
 
 TINY = dict(
