@@ -96,6 +96,23 @@ def train_policy(
     typer.echo(f"checkpoint: {run_train_policy(cfg)}")
 
 
+@app.command()
+def collect(
+    overrides: Optional[List[str]] = OVERRIDES,
+    model: Optional[str] = typer.Option(None, "--model", help="Registry name or checkpoint folder."),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="LeRobot v3 dataset (vlactl demos, or your own)."),
+    pooling: Optional[str] = typer.Option(None, "--pooling", help="prefix, last, image or text."),
+    output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+):
+    """Per-layer pooled activations with robot labels for every dataset frame (resumable)."""
+    from vlactl.config import load_policy_stage_config
+    from vlactl.steering.collect import run_collect
+
+    run_collect(load_policy_stage_config(
+        "collect", _overrides(overrides, model=model, dataset=dataset, pooling=pooling, output_dir=output_dir)
+    ))
+
+
 @app.command("train-probes")
 def train_probes(
     overrides: Optional[List[str]] = OVERRIDES,
@@ -138,7 +155,6 @@ def _not_yet(stage: str, issue: int):
 
 
 for _stage, _issue in [
-    ("collect", 4),
     ("sweep", 5),
 ]:
     app.command(name=_stage)(_not_yet(_stage, _issue))

@@ -32,6 +32,20 @@ def load_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
     return cfg
 
 
+def load_policy_stage_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
+    """The config of a stage that runs a policy, with `model=<name or path>` applied after composing.
+
+    `conf/model/` is a config group (the architectures `train-policy` builds), so Hydra would read `model=x` as
+    choosing a file of that group; in these stages `model` is a plain string: a registry name or a checkpoint path.
+    """
+    overrides = list(overrides or [])
+    models = [item.split("=", 1)[1] for item in overrides if item.startswith("model=")]
+    cfg = load_config(stage, [item for item in overrides if not item.startswith("model=")])
+    if models:
+        cfg.model = models[-1]
+    return cfg
+
+
 def save_config(cfg: DictConfig, out_dir: Path, name: str = "config.yaml") -> Path:
     """Write the resolved config beside a run's outputs (atomically, like every result file)."""
     from vlactl.io import atomic_write_text

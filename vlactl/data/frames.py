@@ -78,6 +78,15 @@ def _decode(cells) -> np.ndarray:
     return np.stack([np.asarray(Image.open(io.BytesIO(cell["bytes"])).convert("RGB")) for cell in cells])
 
 
+def read_columns(root: Path, names: list[str]) -> dict[str, np.ndarray]:
+    """Non-image columns of every frame, in LeRobot's global frame order (the row order of the image cache)."""
+    import pyarrow.parquet as pq
+
+    tables = [pq.read_table(f, columns=[*names, "index"]) for f in data_files(Path(root))]
+    order = np.argsort(np.concatenate([_column(t, "index") for t in tables]), kind="stable")
+    return {name: np.concatenate([_column(t, name) for t in tables])[order] for name in names}
+
+
 def load_frames(root: Path, cameras: tuple[str, ...], cache_dir: Path, progress=None) -> Frames:
     import pyarrow.parquet as pq
 
@@ -86,11 +95,10 @@ def load_frames(root: Path, cameras: tuple[str, ...], cache_dir: Path, progress=
     info = json.loads((root / "meta" / "info.json").read_text())
     key = fingerprint(root)
     cache = Path(cache_dir) / f"frames-{key}"
-    tables = [pq.read_table(f, columns=[STATE_KEY, ACTION_KEY, "episode_index", "task_index", "index"]) for f in files]
-    order = np.argsort(np.concatenate([_column(t, "index") for t in tables]), kind="stable")
+    columns = read_columns(root, [STATE_KEY, ACTION_KEY, "episode_index", "task_index"])
 
     def column(name, dtype):
-        return np.concatenate([_column(t, name) for t in tables])[order].astype(dtype)
+        return columns[name].astype(dtype)
 
     n = int(info["total_frames"])
     image_file = cache / ("images-" + "-".join(cameras) + ".npy")

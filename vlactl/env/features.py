@@ -63,6 +63,19 @@ def libero_state(eef_pos, eef_quat, gripper_qpos) -> np.ndarray:
     )
 
 
+def axis_angle_to_quat_xyzw(axis_angle: np.ndarray) -> np.ndarray:
+    v = np.asarray(axis_angle, dtype=np.float64)
+    angle = np.linalg.norm(v, axis=-1, keepdims=True)
+    axis = np.divide(v, angle, out=np.zeros_like(v), where=angle > 1e-12)
+    return np.concatenate([axis * np.sin(angle / 2), np.cos(angle / 2)], axis=-1)
+
+
+def robot_state_from_libero(state: np.ndarray) -> np.ndarray:
+    """s of SPEC.md §2 from LIBERO's 8-D state (position, axis-angle, finger joints): for datasets that lack it."""
+    state = np.asarray(state, dtype=np.float64)
+    return robot_state(state[..., :3], axis_angle_to_quat_xyzw(state[..., 3:6]), state[..., 6:8])
+
+
 def speeds(positions: np.ndarray, dt: float = CONTROL_DT) -> np.ndarray:
     """Speed v_t = ||p_{t+1} - p_t|| / dt of the motion that action t causes (m/s); the last frame repeats."""
     p = np.asarray(positions, dtype=np.float64)

@@ -18,7 +18,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from vlactl.config import load_config, resolve_path, save_config
+from vlactl.config import load_policy_stage_config, resolve_path, save_config
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir
 from vlactl.rollout import parts
@@ -31,17 +31,8 @@ SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env")
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
-    """The rollout config with `model=<name or path>` applied after composing.
-
-    `conf/model/` is a config group (the architectures `train-policy` builds), so Hydra would read `model=x` as
-    choosing a file of that group; here `model` is a plain string: a registry name, a checkpoint path, or `scripted`.
-    """
-    overrides = list(overrides or [])
-    models = [item.split("=", 1)[1] for item in overrides if item.startswith("model=")]
-    cfg = load_config("rollout", [item for item in overrides if not item.startswith("model=")])
-    if models:
-        cfg.model = models[-1]
-    return cfg
+    """The rollout config; `model` is a registry name, a checkpoint path, or `scripted`."""
+    return load_policy_stage_config("rollout", overrides)
 
 
 def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
