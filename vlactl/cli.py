@@ -113,6 +113,23 @@ def collect(
     ))
 
 
+@app.command()
+def sweep(
+    overrides: Optional[List[str]] = OVERRIDES,
+    model: Optional[str] = typer.Option(None, "--model", help="Registry name or checkpoint folder."),
+    probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder (vlactl train-probes)."),
+    feature: Optional[str] = typer.Option(None, "--feature", help="Whose probe direction to push along."),
+    output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+):
+    """Perturbation sweep (Fig. 2): action change per layer and alpha, and each layer's norm."""
+    from vlactl.config import load_policy_stage_config
+    from vlactl.steering.sweep import run_sweep
+
+    run_sweep(load_policy_stage_config(
+        "sweep", _overrides(overrides, model=model, probes=probes, feature=feature, output_dir=output_dir)
+    ))
+
+
 @app.command("train-probes")
 def train_probes(
     overrides: Optional[List[str]] = OVERRIDES,
@@ -145,19 +162,16 @@ def plot_probes(
     run_plot_probes(load_config("plot_probes", _overrides(overrides, run_dir=run_dir)))
 
 
-def _not_yet(stage: str, issue: int):
-    def command(overrides: Optional[List[str]] = OVERRIDES):
-        typer.echo(f"vlactl {stage}: not yet available (tracked in issue #{issue})", err=True)
-        raise typer.Exit(1)
+@plot_app.command("sweep")
+def plot_sweep(
+    overrides: Optional[List[str]] = OVERRIDES,
+    run_dir: Optional[str] = typer.Option(None, "--run-dir", help="Sweep run folder (vlactl sweep)."),
+):
+    """Fig. 2: mean change of delta-yaw and gripper action vs layer per alpha, and the norm vs layer."""
+    from vlactl.config import load_config
+    from vlactl.plots.sweep import run_plot_sweep
 
-    command.__doc__ = f"[not yet available: issue #{issue}]"
-    return command
-
-
-for _stage, _issue in [
-    ("sweep", 5),
-]:
-    app.command(name=_stage)(_not_yet(_stage, _issue))
+    run_plot_sweep(load_config("plot_sweep", _overrides(overrides, run_dir=run_dir)))
 
 
 def main() -> None:

@@ -21,12 +21,11 @@ from omegaconf import DictConfig  # noqa: E402
 
 from vlactl.config import resolve_path  # noqa: E402
 from vlactl.errors import UsageError  # noqa: E402
-from vlactl.io import atomic_path  # noqa: E402
+from vlactl.plots.files import check_formats, save_figure  # noqa: E402
 from vlactl.steering.probes import LOGISTIC, REGRESSION  # noqa: E402
 from vlactl.steering.train_probes import METRICS_NAME  # noqa: E402
 
 PROBE, BASE = "#1f78b4", "#a6cee3"  # the paper's Paired palette: trained probe dark, baseline light
-FORMATS = ("png", "pdf")
 CURVES = [  # (column, label, baseline column or None, kind)
     ("r2", "test R$^2$", "baseline_r2", REGRESSION),
     ("mae", "test MAE", "baseline_mae", REGRESSION),
@@ -34,16 +33,6 @@ CURVES = [  # (column, label, baseline column or None, kind)
     ("accuracy", "test accuracy", "baseline_accuracy", LOGISTIC),
     ("balanced_accuracy", "test balanced accuracy", "baseline_balanced_accuracy", LOGISTIC),
 ]
-
-
-def _save(fig, out: Path, name: str, formats, dpi) -> list[Path]:
-    paths = []
-    for fmt in formats:
-        with atomic_path(out / f"{name}.{fmt}") as tmp:
-            fig.savefig(tmp, format=fmt, dpi=dpi)
-        paths.append(out / f"{name}.{fmt}")
-    plt.close(fig)
-    return paths
 
 
 def best_layers(table: pd.DataFrame) -> pd.DataFrame:
@@ -161,20 +150,18 @@ def figure_robustness(table: pd.DataFrame):
 def run_plot_probes(cfg: DictConfig) -> list[Path]:
     if cfg.run_dir is None:
         raise UsageError("which probe run? pass run_dir=<folder written by `vlactl train-probes`>")
-    unknown = [f for f in cfg.formats if f not in FORMATS]
-    if unknown:
-        raise UsageError(f"unknown format {unknown[0]!r}; allowed: {', '.join(FORMATS)}")
+    check_formats(cfg.formats)
     run = resolve_path(cfg.run_dir)
     if not (run / METRICS_NAME).is_file():
         raise UsageError(f"{str(run)!r} is not a probe run folder (no {METRICS_NAME}); run `vlactl train-probes`")
     table = pd.read_parquet(run / METRICS_NAME)
     out = run / "figures"
-    written = _save(figure_best(table), out, "fig1_best_layer", cfg.formats, cfg.dpi)
+    written = save_figure(figure_best(table), out, "fig1_best_layer", cfg.formats, cfg.dpi)
     for column, label, baseline, kind in CURVES:
         if column in table and (table["kind"] == kind).any():
-            written += _save(figure_curves(table, column, label, baseline, kind), out, f"layers_{column}",
+            written += save_figure(figure_curves(table, column, label, baseline, kind), out, f"layers_{column}",
                              cfg.formats, cfg.dpi)
     if any(c.startswith("robust_mean_") for c in table.columns):
-        written += _save(figure_robustness(table), out, "layers_robustness", cfg.formats, cfg.dpi)
+        written += save_figure(figure_robustness(table), out, "layers_robustness", cfg.formats, cfg.dpi)
     print(f"wrote {len(written)} files under {out}", file=sys.stderr)
     return written

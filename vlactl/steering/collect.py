@@ -42,7 +42,7 @@ def _check(cfg: DictConfig) -> None:
         check_positive("max_episodes", cfg.max_episodes)
 
 
-def _layers(vla, chosen) -> list[str]:
+def choose_layers(vla, chosen) -> list[str]:
     available = vla.layer_names()
     if chosen == "all":
         return available
@@ -121,7 +121,7 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     _check(cfg)
     torch.set_num_threads(cfg.threads)
     vla = (load_policy or registry_load)(str(cfg.model))
-    layers = _layers(vla, cfg.layers)
+    layers = choose_layers(vla, cfg.layers)
     root = resolve_path(cfg.dataset)
     out = ensure_writable_dir(resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg), cfg.output_dir)
     frames = load_frames(root, CAMERAS, resolve_path(cfg.cache_dir))

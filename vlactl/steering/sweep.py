@@ -1,0 +1,130 @@
+"""`vlactl sweep` (paper Fig. 2): how much does adding alpha * d at one layer change the predicted actions?
+
+For each layer, one at a time, and each alpha, alpha * d is added to that layer's read-out tokens at every forward
+(`hooks.intervene`), over N frames spread evenly over a dataset; the first predicted action of each chunk is compared
+with the unperturbed prediction under the same flow-matching noise (the policy is reset before every prediction).
+d is the unit probe direction of a feature at that layer, all-ones / sqrt(d), or a random unit vector. The pooled
+representation's L2 norm per layer is recorded too, so alpha can be read against the scale of each layer.
+
+Writes `sweep.parquet` (layer, alpha, frame, change of each action dimension) and `norms.parquet` (layer, frame,
+norm) under the run folder.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from vlactl.config import REPO_ROOT, resolve_path, save_config
+from vlactl.data.frames import load_frames
+from vlactl.env.features import ACTION_FEATURES
+from vlactl.errors import UsageError, check_choice, check_positive
+from vlactl.io import atomic_write_parquet, ensure_writable_dir
+from vlactl.models.base import POOLINGS, PolicyInput
+from vlactl.models.hooks import capture, intervene
+from vlactl.steering.collect import CAMERAS, choose_layers
+from vlactl.steering.probe_file import load_probe
+from vlactl.steering.train_probes import probe_filename
+
+DIRECTIONS = ("probe", "ones", "random")
+SWEEP_NAME, NORMS_NAME = "sweep.parquet", "norms.parquet"
+
+
+def _check(cfg: DictConfig) -> None:
+    if OmegaConf.is_missing(cfg, "model"):
+        raise UsageError("which model? pass model=<registry name or checkpoint folder>, e.g. model=hybrid")
+    check_choice("direction", cfg.direction, DIRECTIONS)
+    check_choice("pooling", cfg.pooling, POOLINGS)
+    for key in ("frames", "batch_size", "threads"):
+        check_positive(key, cfg[key])
+    if not cfg.alphas:
+        raise UsageError("alphas must be a non-empty list of numbers, e.g. alphas=[-4,4]")
+    if cfg.direction == "probe" and cfg.probes is None:
+        raise UsageError("direction=probe needs probes=<probe run folder from `vlactl train-probes`>")
+
+
+def directions(cfg: DictConfig, vla, layers: list[str]) -> dict[str, torch.Tensor]:
+    """A unit vector per layer."""
+    out = {}
+    generator = torch.Generator().manual_seed(cfg.seed)
+    for name in layers:
+        width = vla.layer_width(name)
+        if cfg.direction == "probe":
+            path = resolve_path(cfg.probes) / "probes" / probe_filename(name, cfg.feature)
+            if not path.is_file():
+                raise UsageError(f"no {cfg.feature!r} probe for layer {name} in {cfg.probes!r} ({path.name} missing)")
+            d = load_probe(path, model=vla.name, width=width, pooling=cfg.pooling).weight
+        elif cfg.direction == "ones":
+            d = torch.ones(width, dtype=torch.float64)
+        else:
+            d = torch.randn(width, generator=generator, dtype=torch.float64)
+        out[name] = (d / d.norm()).float()
+    return out
+
+
+def _predict(vla, obs: PolicyInput, layer: str | None = None, u: torch.Tensor | None = None) -> np.ndarray:
+    """First action of each predicted chunk, [B, 7], optionally with u added at `layer`."""
+    vla.reset()
+    with torch.inference_mode():
+        if layer is None:
+            chunk = vla.predict_action_chunk(obs)
+        else:
+            with intervene(vla, [layer], lambda _, x: u.to(x.dtype).expand_as(x)):
+                chunk = vla.predict_action_chunk(obs)
+    return chunk[:, 0].float().cpu().numpy()
+
+
+def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
+    from vlactl.models.registry import load_policy as registry_load
+
+    _check(cfg)
+    torch.set_num_threads(cfg.threads)
+    vla = (load_policy or registry_load)(str(cfg.model))
+    layers = choose_layers(vla, cfg.layers)
+    units = directions(cfg, vla, layers)
+    frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
+    rows_all = np.unique(np.linspace(0, len(frames) - 1, min(cfg.frames, len(frames))).round().astype(int))
+    name = cfg.feature if cfg.direction == "probe" else cfg.direction
+    out = resolve_path(cfg.output_dir) if cfg.output_dir else REPO_ROOT / "outputs" / "sweeps" / f"{Path(str(cfg.model)).name}_{name}"
+    ensure_writable_dir(out, cfg.output_dir)
+
+    changes, norms = [], []
+    total = len(rows_all) * len(layers) * len(cfg.alphas)
+    with tqdm(total=total, desc=f"sweep {vla.name}", unit="frame") as bar:
+        for start in range(0, len(rows_all), cfg.batch_size):
+            index = rows_all[start : start + cfg.batch_size]
+            images = np.asarray(frames.images[index])
+            obs = PolicyInput({cam: images[:, k] for k, cam in enumerate(CAMERAS)}, frames.state[index],
+                              [frames.tasks[t] for t in frames.task[index]])
+            with capture(vla, layers, cfg.pooling) as seen, torch.inference_mode():
+                vla.encode(obs)
+            for layer in layers:
+                if seen[layer]:
+                    norms.append(pd.DataFrame({"layer": layer, "frame": index,
+                                               "norm": seen[layer][0].float().norm(dim=-1).numpy()}))
+            plain = _predict(vla, obs)
+            for layer in layers:
+                for alpha in cfg.alphas:
+                    delta = _predict(vla, obs, layer, float(alpha) * units[layer]) - plain
+                    table = pd.DataFrame(delta, columns=[f"d_{a}" for a in ACTION_FEATURES])
+                    table.insert(0, "frame", index)
+                    table.insert(0, "alpha", float(alpha))
+                    table.insert(0, "layer", layer)
+                    changes.append(table)
+                    bar.update(len(index))
+    order = {name: i for i, name in enumerate(layers)}
+    sweep = pd.concat(changes, ignore_index=True)
+    sweep.insert(1, "layer_index", sweep["layer"].map(order))
+    atomic_write_parquet(out / SWEEP_NAME, sweep)
+    norm_table = pd.concat(norms, ignore_index=True)
+    norm_table.insert(1, "layer_index", norm_table["layer"].map(order))
+    atomic_write_parquet(out / NORMS_NAME, norm_table)
+    save_config(cfg, out)
+    print(f"wrote {out / SWEEP_NAME} ({len(sweep)} rows) and {out / NORMS_NAME}", file=sys.stderr)
+    return out
