@@ -23,7 +23,7 @@ from vlactl.config import resolve_path  # noqa: E402
 from vlactl.errors import UsageError  # noqa: E402
 from vlactl.plots.files import check_formats, save_figure  # noqa: E402
 from vlactl.steering.probes import LOGISTIC, REGRESSION  # noqa: E402
-from vlactl.steering.train_probes import METRICS_NAME  # noqa: E402
+from vlactl.steering.train_probes import METRICS_NAME, best_layers  # noqa: E402
 
 PROBE, BASE = "#1f78b4", "#a6cee3"  # the paper's Paired palette: trained probe dark, baseline light
 CURVES = [  # (column, label, baseline column or None, kind)
@@ -33,14 +33,6 @@ CURVES = [  # (column, label, baseline column or None, kind)
     ("accuracy", "test accuracy", "baseline_accuracy", LOGISTIC),
     ("balanced_accuracy", "test balanced accuracy", "baseline_balanced_accuracy", LOGISTIC),
 ]
-
-
-def best_layers(table: pd.DataFrame) -> pd.DataFrame:
-    """One row per feature: the layer whose probe scores best on the test episodes."""
-    score = table["r2"].where(table["kind"] == REGRESSION, table.get("balanced_accuracy"))
-    best = table.assign(_score=score.fillna(-np.inf)).sort_values("_score", kind="stable").groupby("feature").tail(1)
-    order = {f: i for i, f in enumerate(dict.fromkeys(table["feature"]))}
-    return best.sort_values("feature", key=lambda s: s.map(order)).drop(columns="_score")
 
 
 def _bars(ax, labels, probe, base, ylabel, notes):

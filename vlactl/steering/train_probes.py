@@ -161,14 +161,20 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
     return rows
 
 
+def best_layers(table: pd.DataFrame) -> pd.DataFrame:
+    """One row per feature: the layer whose probe scores best on the test episodes."""
+    score = table["r2"].where(table["kind"] == REGRESSION, table.get("balanced_accuracy"))
+    best = table.assign(_score=score.fillna(-np.inf)).sort_values("_score", kind="stable").groupby("feature").tail(1)
+    order = {f: i for i, f in enumerate(dict.fromkeys(table["feature"]))}
+    return best.sort_values("feature", key=lambda s: s.map(order)).drop(columns="_score")
+
+
 def _print_best(table: pd.DataFrame) -> None:
     """Best layer per feature (by test R^2 / balanced accuracy, as the paper's Fig. 1) against its baseline."""
-    for feature, rows in table.groupby("feature", sort=False):
-        if rows["kind"].iloc[0] == REGRESSION:
-            best = rows.loc[rows["r2"].fillna(-np.inf).idxmax()]
-            print(f"{feature:15s} best {best['layer']:14s} R2 {best['r2']:6.3f}  MAE {best['mae']:.4g} "
+    for _, best in best_layers(table).iterrows():
+        if best["kind"] == REGRESSION:
+            print(f"{best['feature']:15s} best {best['layer']:14s} R2 {best['r2']:6.3f}  MAE {best['mae']:.4g} "
                   f"(train-mean baseline {best['baseline_mae']:.4g})")
         else:
-            best = rows.loc[rows["balanced_accuracy"].fillna(-np.inf).idxmax()]
-            print(f"{feature:15s} best {best['layer']:14s} acc {best['accuracy']:.3f} balanced "
+            print(f"{best['feature']:15s} best {best['layer']:14s} acc {best['accuracy']:.3f} balanced "
                   f"{best['balanced_accuracy']:.3f} (majority baseline {best['baseline_accuracy']:.3f})")
