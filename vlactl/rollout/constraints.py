@@ -1,0 +1,104 @@
+"""Closed-loop constraints of SPEC.md §3: what each one asks, over which window, and how it is judged and steered.
+
+A constraint is `<feature>=<value>`: `gripper=open|closed`, `height=low|high`, `speed=low|high`. It holds over the
+first `window` policy steps (15, 15 and 25 by default). Per step it is *satisfied* when
+- gripper: the commanded gripper action has the wanted sign (LIBERO: -1 opens, +1 closes);
+- height: the end-effector z is below (low) / above (high) its value at the episode's first policy step;
+- speed: the end-effector speed is below (low) / above (high) a threshold, by default the median speed of the
+  training demonstrations.
+For control, each maps to a box on one probe's reading: the gripper-action logit beyond +-`logit_margin`, the z
+reading on the wanted side of the start height, the speed reading on the wanted side of the threshold. Pure functions:
+no model, no simulator.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from vlactl.errors import UsageError
+
+# feature -> (allowed values, default window, probe feature the controller steers = the step-table column judged)
+KINDS = {
+    "gripper": (("open", "closed"), 15, "gripper_action"),
+    "height": (("low", "high"), 15, "z"),
+    "speed": (("low", "high"), 25, "speed"),
+}
+PROMPTS = {  # what the prompting baseline appends to the instruction
+    ("gripper", "open"): "keep the gripper open",
+    ("gripper", "closed"): "keep the gripper closed",
+    ("height", "low"): "stay low",
+    ("height", "high"): "stay high",
+    ("speed", "low"): "move slowly",
+    ("speed", "high"): "move fast",
+}
+
+
+@dataclass(frozen=True)
+class Constraint:
+    feature: str
+    value: str
+    window: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.feature}={self.value}"
+
+    @property
+    def probe_feature(self) -> str:
+        return KINDS[self.feature][2]
+
+    @property
+    def upper(self) -> bool:
+        """Whether the constraint keeps the quantity above its reference (closed, high) rather than below it."""
+        return self.value in ("closed", "high")
+
+
+def parse_constraint(text: str, window: int | None = None) -> Constraint | None:
+    """`gripper=open` -> Constraint; `none` -> None. A bad feature or value is a UsageError naming what is allowed."""
+    if text in (None, "", "none"):
+        return None
+    feature, sep, value = str(text).partition("=")
+    allowed = ", ".join(f"{f}={'|'.join(values)}" for f, (values, _, _) in KINDS.items())
+    if not sep or feature not in KINDS or value not in KINDS[feature][0]:
+        raise UsageError(f"unknown constraint {text!r}; allowed: none, {allowed}")
+    window = KINDS[feature][1] if window is None else int(window)
+    if window < 1:
+        raise UsageError(f"constraint window must be >= 1 step, got {window}")
+    return Constraint(feature, value, window)
+
+
+def reference(constraint: Constraint, start_z: float, speed_threshold: float) -> float:
+    """The level a step is compared with: 0 for the gripper action, the start height, or the speed threshold."""
+    return {"gripper": 0.0, "height": start_z, "speed": speed_threshold}[constraint.feature]
+
+
+def box(constraint: Constraint, level: float, logit_margin: float = 2.0) -> tuple[float, float]:
+    """[zmin, zmax] on the probe reading that says 'satisfied' (for the gripper, on the gripper-action logit)."""
+    if constraint.feature == "gripper":
+        return (logit_margin, math.inf) if constraint.upper else (-math.inf, -logit_margin)
+    return (level, math.inf) if constraint.upper else (-math.inf, level)
+
+
+def prompted(instruction: str, constraint: Constraint) -> str:
+    """The prompting baseline: the constraint said in words after the task."""
+    return f"{instruction} and {PROMPTS[(constraint.feature, constraint.value)]}"
+
+
+def judge_steps(constraint: Constraint, steps, start_z: float, speed_threshold: float):
+    """Adds to a rollout's step table (one episode): in_window, constraint_value, constraint_level, satisfied
+    (missing outside the window). Returns the table and the episode's satisfaction: the fraction of its window steps
+    satisfied (NaN if the episode ended before the window began, which cannot happen with window >= 1)."""
+    import numpy as np
+    import pandas as pd
+
+    level = reference(constraint, start_z, speed_threshold)
+    values = steps[constraint.probe_feature].to_numpy(dtype=float)  # the step table names columns like the probes
+    inside = steps["t"].to_numpy() < constraint.window
+    ok = values >= level if constraint.upper else values <= level
+    steps = steps.assign(
+        in_window=inside, constraint_value=values, constraint_level=level,
+        satisfied=pd.array(np.where(inside, ok, False), dtype="boolean"),
+    )
+    steps.loc[~inside, "satisfied"] = pd.NA
+    return steps, float(ok[inside].mean()) if inside.any() else float("nan")
