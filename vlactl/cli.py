@@ -68,13 +68,17 @@ def rollout(
     workers: Optional[int] = typer.Option(None, "--workers", help="Simulator worker processes."),
     video: Optional[bool] = typer.Option(None, "--video/--no-video", help="Save an mp4 per episode."),
     run_name: Optional[str] = typer.Option(None, "--run-name", help="Output folder under outputs/rollout/."),
+    constraint: Optional[str] = typer.Option(
+        None, "--constraint", help="none, gripper=open|closed, height=low|high, speed=low|high."),
+    method: Optional[str] = typer.Option(None, "--method", help="none, prompt, control or alpha."),
+    probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder, for control and alpha."),
 ):
     """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable)."""
     from vlactl.rollout.runner import rollout_config, run_rollout
 
     run_rollout(rollout_config(_overrides(
         overrides, model=model, suite=suite, episodes_per_task=episodes_per_task, workers=workers, video=video,
-        run_name=run_name,
+        run_name=run_name, constraint=constraint, method=method, probes=probes,
     )))
 
 

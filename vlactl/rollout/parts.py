@@ -18,8 +18,10 @@ from vlactl.io import atomic_write_json, atomic_write_parquet
 EPISODE_KEY = ["task_id", "episode"]
 EPISODE_COLUMNS = [
     "suite", *EPISODE_KEY, "instruction", "init_state", "seed", "success", "steps", "wall_s", "model",
-    "method", "constraint",  # no intervention yet; the steering and prompting comparison fills these later
+    "method", "constraint", "satisfaction",  # satisfaction: fraction of the constraint window's steps satisfied
 ]
+# With a constraint, steps also get the columns of vlactl.rollout.constraints.judge_steps and of
+# vlactl.rollout.constrained.READING_COLUMNS.
 STEP_COLUMNS = [*EPISODE_KEY, "t", *STATE_FEATURES, *ACTION_FEATURES, "speed"]
 
 

@@ -15,6 +15,7 @@ import multiprocessing as mp
 import re
 from pathlib import Path
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
@@ -22,17 +23,56 @@ from vlactl.config import load_policy_stage_config, resolve_path, save_config
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir
 from vlactl.rollout import parts
-from vlactl.rollout.agents import load_agent
+from vlactl.rollout.agents import SCRIPTED, load_agent
+from vlactl.rollout.constrained import METHODS, STEERING, Steering
+from vlactl.rollout.constraints import parse_constraint
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
-SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env")
+SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env", "constraint", "window", "method")
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
-    """The rollout config; `model` is a registry name, a checkpoint path, or `scripted`."""
-    return load_policy_stage_config("rollout", overrides)
+    """The rollout config; `model` is a registry name, a checkpoint path, or `scripted`. `constraint=gripper=open`
+    is taken as written (Hydra would need the value quoted)."""
+    quoted = [f"constraint='{item.split('=', 1)[1]}'" if item.startswith("constraint=") and "'" not in item else item
+              for item in overrides or []]
+    return load_policy_stage_config("rollout", quoted)
+
+
+def steering(cfg: DictConfig, constraint) -> Steering:
+    """The run's intervention: method, and for control/alpha the probes of the constraint's feature at the chosen
+    layers (by default its best layer in the probe run's metrics)."""
+    import pandas as pd
+
+    from vlactl.data.frames import read_columns
+    from vlactl.steering.probe_file import load_probe
+    from vlactl.steering.train_probes import METRICS_NAME, best_layers, probe_filename
+
+    check_choice("method", cfg.method, METHODS)
+    if cfg.method != "none" and constraint is None:
+        raise UsageError(f"method={cfg.method} needs a constraint, e.g. constraint=gripper=open")
+    if cfg.method != "none" and cfg.model == SCRIPTED:
+        raise UsageError(f"method={cfg.method} needs a VLA; the scripted expert takes no instruction or steering")
+    threshold = cfg.speed_threshold
+    if constraint is not None and constraint.feature == "speed" and threshold is None:
+        threshold = float(np.median(read_columns(resolve_path(cfg.demos), ["speed"])["speed"]))
+    probes = ()
+    if cfg.method in STEERING:
+        if cfg.probes is None:
+            raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>")
+        run = resolve_path(cfg.probes)
+        if not (run / METRICS_NAME).is_file():
+            raise UsageError(f"{cfg.probes!r} is not a probe run folder (no {METRICS_NAME})")
+        feature = constraint.probe_feature
+        table = pd.read_parquet(run / METRICS_NAME)
+        layers = list(cfg.layers or best_layers(table[table["feature"] == feature])["layer"])
+        missing = [layer for layer in layers if not (run / "probes" / probe_filename(layer, feature)).is_file()]
+        if missing or not layers:
+            raise UsageError(f"no {feature!r} probe for layer {missing[0] if missing else '?'} in {cfg.probes!r}")
+        probes = tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
+    return Steering(cfg.method, probes, float(cfg.alpha), float(cfg.logit_margin), float(threshold or 0.0))
 
 
 def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
@@ -47,6 +87,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps
     check_positive("max_steps", cfg.max_steps)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
+    constraint = parse_constraint(cfg.constraint, cfg.window)
+    plan = steering(cfg, constraint)
     out = run_dir(cfg)
     _check_same_run(cfg, out)
 
@@ -62,14 +104,15 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     spec = RunSpec(
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
-        load_policy=load_policy,
+        load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
     )
     _run_workers(spec, batches(todo, cfg.workers), out, keys, cfg.workers)
 
     episodes, steps = parts.merge(out, keys)
     atomic_write_parquet(out / "episodes.parquet", episodes)
     atomic_write_parquet(out / "steps.parquet", steps)
-    summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy}
+    summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
+               "method": cfg.method, "steered_layers": [p.layer for p in plan.probes]}
     summary.update(summarise_file(out / "episodes.parquet"))
     atomic_write_json(out / "summary.json", summary)
     print(format_summary(summary))
@@ -80,7 +123,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 def run_dir(cfg: DictConfig) -> Path:
     """`<output_root>/<run_name>` (created later); the default run name is the model and the suite, e.g.
     `scripted_libero_spatial`. Fails early if the root is not writable."""
-    name = cfg.run_name or f"{re.sub(r'[^A-Za-z0-9._-]+', '-', str(cfg.model)).strip('-.')}_{cfg.suite}"
+    default = f"{cfg.model}_{cfg.suite}" + ("" if cfg.constraint == "none" else f"_{cfg.constraint}_{cfg.method}")
+    name = cfg.run_name or re.sub(r"[^A-Za-z0-9._-]+", "-", default).strip("-.")
     root = resolve_path(cfg.output_root)
     return ensure_writable_dir(root, requested=root, key="output_root") / name
 

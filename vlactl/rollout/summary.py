@@ -10,13 +10,16 @@ import pandas as pd
 def _stats(episodes: pd.DataFrame) -> dict:
     n, ok = len(episodes), int(episodes["success"].sum())
     won = episodes.loc[episodes["success"].astype(bool), "steps"]
-    return {
+    out = {
         "episodes": n,
         "successes": ok,
         "success_rate": ok / n if n else None,
         "mean_steps": float(episodes["steps"].mean()) if n else None,
         "mean_steps_success": float(won.mean()) if len(won) else None,
     }
+    if "satisfaction" in episodes and episodes["satisfaction"].notna().any():
+        out["satisfaction"] = float(episodes["satisfaction"].mean())  # mean over episodes of the window fraction
+    return out
 
 
 def summarise(episodes: pd.DataFrame) -> dict:
@@ -36,6 +39,9 @@ def format_summary(summary: dict) -> str:
         return "n/a" if s["success_rate"] is None else f"{100 * s['success_rate']:.0f}%"
 
     lines = [f"success {summary['successes']}/{summary['episodes']} ({rate(summary)})"]
+    if "satisfaction" in summary:
+        lines.append(f"constraint {summary.get('constraint')} ({summary.get('method')}): satisfied on "
+                     f"{100 * summary['satisfaction']:.0f}% of window steps")
     for task, s in summary["per_task"].items():
         lines.append(f"  task {task}: {s['successes']}/{s['episodes']} ({rate(s)})  {s['instruction']}")
     return "\n".join(lines)

@@ -12,6 +12,8 @@ from typing import Callable
 
 from vlactl.rollout import parts
 from vlactl.rollout.agents import load_agent
+from vlactl.rollout.constrained import READING_COLUMNS, ConstrainedAgent, Steering
+from vlactl.rollout.constraints import judge_steps, parse_constraint
 from vlactl.rollout.episode import run_episode
 
 
@@ -28,6 +30,9 @@ class RunSpec:
     video: bool
     env: dict
     load_policy: Callable | None = None  # None: the model registry; tests pass a fixture loader
+    constraint: str = "none"
+    window: int | None = None
+    steering: Steering = Steering("none")
 
 
 @dataclass(frozen=True)
@@ -56,6 +61,9 @@ def _agent():
     global _AGENT
     if _AGENT is None:  # loaded on first use, not in the initializer: a failing initializer respawns forever
         _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy)
+        constraint = parse_constraint(_SPEC.constraint, _SPEC.window)
+        if constraint is not None and _SPEC.steering.method != "none":
+            _AGENT = ConstrainedAgent(_AGENT.vla, constraint, _SPEC.steering, _SPEC.replan_every)
     return _AGENT
 
 
@@ -76,6 +84,7 @@ def run_batch(batch: Batch) -> None:
     render = agent.needs_images or spec.video
     env = _env(batch.task, render)
     out = Path(spec.out)
+    constraint = parse_constraint(spec.constraint, spec.window)
     for k in batch.episodes:
         init_state, seed = k % env.n_init_states, spec.seed + k
         result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video)
@@ -86,6 +95,14 @@ def run_batch(batch: Batch) -> None:
         row = {
             "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
-            "wall_s": round(result.wall_s, 3), "model": spec.model, "method": "none", "constraint": "none",
+            "wall_s": round(result.wall_s, 3), "model": spec.model, "method": spec.steering.method,
+            "constraint": constraint.name if constraint else "none",
         }
-        parts.write(out, row, parts.steps_frame(batch.task, k, result))
+        steps = parts.steps_frame(batch.task, k, result)
+        if constraint is not None:
+            steps, row["satisfaction"] = judge_steps(constraint, steps, float(result.states[0, 2]),
+                                                     spec.steering.speed_threshold)
+            readings = getattr(agent, "readings", {})
+            for column in READING_COLUMNS:
+                steps[column] = [readings.get(t, {}).get(column) for t in steps["t"]]
+        parts.write(out, row, steps)

@@ -163,7 +163,10 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
 
 def best_layers(table: pd.DataFrame) -> pd.DataFrame:
     """One row per feature: the layer whose probe scores best on the test episodes."""
-    score = table["r2"].where(table["kind"] == REGRESSION, table.get("balanced_accuracy"))
+    def column(name):  # a run of only regression or only logistic probes lacks the other kind's metrics
+        return table[name] if name in table else pd.Series(np.nan, index=table.index)
+
+    score = column("r2").where(table["kind"] == REGRESSION, column("balanced_accuracy"))
     best = table.assign(_score=score.fillna(-np.inf)).sort_values("_score", kind="stable").groupby("feature").tail(1)
     order = {f: i for i, f in enumerate(dict.fromkeys(table["feature"]))}
     return best.sort_values("feature", key=lambda s: s.map(order)).drop(columns="_score")

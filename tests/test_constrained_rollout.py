@@ -1,0 +1,63 @@
+"""Constrained rollouts end to end with the random test model: probes from collect + train-probes on a synthetic
+dataset, then `vlactl rollout --constraint gripper=open --method control|prompt|none`."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from synthetic_demos import write_synthetic_demos
+from typer.testing import CliRunner
+
+from vlactl.cli import app
+from vlactl.errors import UsageError
+from vlactl.rollout.runner import rollout_config, run_rollout
+
+
+@pytest.fixture(scope="module")
+def probes(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("probes")
+    demos = write_synthetic_demos(tmp / "demos", episodes=6, frames=8)
+    runner = CliRunner()
+    common = [f"cache_dir={tmp / 'cache'}", "threads=1"]
+    result = runner.invoke(app, ["collect", "model=random", f"dataset={demos}", f"output_dir={tmp / 'acts'}", *common])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["train-probes", f"activations={tmp / 'acts'}", f"output_dir={tmp / 'run'}",
+                                 "features=[gripper_action]", "cv_folds=2", "robustness_directions=2"])
+    assert result.exit_code == 0, result.output
+    return tmp / "run"
+
+
+def rollout(root, *extra):
+    return run_rollout(rollout_config(["model=random", "tasks=[0]", "episodes_per_task=1", "max_steps=6", "workers=1",
+                                       f"output_root={root}", "constraint=gripper=open", "window=4", *extra]))
+
+
+def test_control_keeps_the_steered_reading_in_the_box(probes, tmp_path):
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", "logit_margin=3")
+    out = tmp_path / "random_libero_spatial_gripper-open_control"
+    steps = pd.read_parquet(out / "steps.parquet")
+    assert steps["in_window"].tolist() == [True] * 4 + [False] * 2
+    steered = steps.dropna(subset=["reading_after"])
+    assert steered["t"].tolist() == [0, 2]  # the tiny model re-plans every 2 steps; only window steps are steered
+    assert (steered["reading_after"] <= -3 + 1e-6).all()
+    episodes = pd.read_parquet(out / "episodes.parquet")
+    window = steps[steps["in_window"]]
+    assert episodes["satisfaction"].iloc[0] == pytest.approx(float((window["gripper_action"] <= 0).mean()))
+    assert summary["method"] == "control" and summary["steered_layers"] and "satisfaction" in summary
+
+
+def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
+    for method in ("none", "prompt"):
+        rollout(tmp_path, f"method={method}")
+        steps = pd.read_parquet(tmp_path / f"random_libero_spatial_gripper-open_{method}" / "steps.parquet")
+        assert steps["reading_after"].isna().all() and steps["satisfied"].notna().sum() == 4
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["method=control"], "needs probes="),
+    (["method=steer"], "method"),
+    (["constraint=none", "method=prompt"], "needs a constraint"),
+    (["constraint=speed=slow"], "unknown constraint 'speed=slow'"),
+])
+def test_bad_input_is_a_usage_error(tmp_path, extra, message):
+    with pytest.raises(UsageError, match=message):
+        rollout(tmp_path, *extra)

@@ -1,0 +1,59 @@
+"""A VLA agent under a constraint: `prompt` says it in the instruction; `control` and `alpha` steer the constrained
+probe's layers with a `Steerer` at every prediction made inside the constraint window (SPEC.md §3).
+
+The box depends on the episode (the start height for `height=`), so it is set at each reset. The agent keeps, per
+step, the probe readings before and after the intervention at the prediction made on that step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from vlactl.rollout.agents import VLAAgent
+from vlactl.rollout.constraints import Constraint, box, prompted, reference
+from vlactl.steering.steer import Constraint as ProbeBox
+from vlactl.steering.steer import Steerer
+
+METHODS = ("none", "prompt", "control", "alpha")
+STEERING = ("control", "alpha")
+READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active")  # per step with a steered prediction
+
+
+@dataclass(frozen=True)
+class Steering:
+    """How a run intervenes: the method, and for control/alpha the probes (one per steered layer) and sizes."""
+
+    method: str
+    probes: tuple = ()  # vlactl.steering.probes.Probe, all of the constraint's probe feature
+    alpha: float = 4.0
+    logit_margin: float = 2.0
+    speed_threshold: float = 0.0
+
+
+class ConstrainedAgent(VLAAgent):
+    def __init__(self, vla, constraint: Constraint, steering: Steering, replan_every: int | None = None):
+        super().__init__(vla, replan_every)
+        self.constraint, self.steering = constraint, steering
+        self.readings: dict[int, dict] = {}
+
+    def reset(self, env, obs) -> None:
+        super().reset(env, obs)
+        if self.steering.method == "prompt":
+            self._instruction = prompted(env.instruction, self.constraint)
+        level = reference(self.constraint, float(obs.state[2]), self.steering.speed_threshold)
+        zmin, zmax = box(self.constraint, level, self.steering.logit_margin)
+        self._boxes = [ProbeBox(p, zmin, zmax) for p in self.steering.probes]
+        self._t, self.readings = 0, {}
+
+    def act(self, obs):
+        t, self._t = self._t, self._t + 1
+        steer = self.steering.method in STEERING and t < self.constraint.window and not self._queue
+        if not steer:
+            return super().act(obs)
+        # alpha pushes towards the constraint: up the probe direction for closed/high, down for open/low
+        alpha = self.steering.alpha if self.constraint.upper else -self.steering.alpha
+        with Steerer(self.vla, self._boxes, method=self.steering.method, alpha=alpha) as steerer:
+            action = super().act(obs)
+        first = steerer.log[0]  # the first forward through the first steered layer (row 0: one observation)
+        self.readings[t] = dict(zip(READING_COLUMNS, (first["before"], first["after"], first["u_norm"], first["active"])))
+        return action
