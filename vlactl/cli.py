@@ -178,6 +178,18 @@ def plot_sweep(
     run_plot_sweep(load_config("plot_sweep", _overrides(overrides, run_dir=run_dir)))
 
 
+@plot_app.command("rollouts")
+def plot_rollouts(
+    overrides: Optional[List[str]] = OVERRIDES,
+    root: Optional[str] = typer.Option(None, "--root", help="Folder of rollout runs (default outputs/rollout)."),
+):
+    """Figs. 4-8: violins of the constrained feature per method and condition; success vs satisfaction."""
+    from vlactl.config import load_config
+    from vlactl.plots.rollouts import run_plot_rollouts
+
+    run_plot_rollouts(load_config("plot_rollouts", _overrides(overrides, root=root)))
+
+
 def main() -> None:
     try:
         app(standalone_mode=True)

@@ -1,0 +1,41 @@
+"""`vlactl plot rollouts` on synthetic constrained-run tables (no simulator)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from vlactl.cli import app
+from vlactl.errors import UsageError
+from vlactl.plots.rollouts import load_runs
+
+
+def fake_run(root, constraint, method, seed):
+    rng = np.random.default_rng(seed)
+    out = root / f"hybrid_libero_spatial_{constraint.replace('=', '-')}_{method}"
+    out.mkdir(parents=True)
+    rows = [{"task_id": t, "episode": k, "success": bool(rng.random() < 0.7), "constraint": constraint,
+             "method": method, "satisfaction": rng.random()} for t in range(3) for k in range(2)]
+    pd.DataFrame(rows).to_parquet(out / "episodes.parquet")
+    steps = pd.DataFrame([{"task_id": t, "episode": k, "t": i, "in_window": i < 4, "constraint_value": rng.normal(),
+                           "constraint_level": 0.0} for t in range(3) for k in range(2) for i in range(6)])
+    steps.to_parquet(out / "steps.parquet")
+    return out
+
+
+def test_figures_from_every_constrained_run_under_the_root(tmp_path):
+    for i, (constraint, method) in enumerate([("gripper=open", "none"), ("gripper=open", "control"),
+                                              ("gripper=closed", "prompt"), ("height=low", "control")]):
+        fake_run(tmp_path, constraint, method, i)
+    episodes, steps = load_runs(sorted(p for p in tmp_path.iterdir()))
+    assert len(episodes) == 24 and len(steps) == 24 * 4  # in-window steps only
+    assert set(steps["feature"]) == {"gripper", "height"} and set(steps["condition"]) == {"open", "closed", "low"}
+    result = CliRunner().invoke(app, ["plot", "rollouts", f"root={tmp_path}", "formats=[png]"])
+    assert result.exit_code == 0, result.output
+    for name in ("violins_gripper", "violins_height", "success_vs_satisfaction"):
+        assert (tmp_path / "figures" / f"{name}.png").stat().st_size > 0
+
+
+def test_no_constrained_run_is_a_usage_error(tmp_path):
+    with pytest.raises(UsageError, match="no constrained rollout runs"):
+        load_runs([])
