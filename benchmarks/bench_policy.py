@@ -1,5 +1,6 @@
 """Per-control-step inference time of the embedded models, amortised over the executed part of a chunk, with 1 and
-2 torch threads; parameters and checkpoint size; the cost of capturing every layer; one training step.
+2 torch threads; parameters and checkpoint size; the cost of capturing every layer, and of capturing every layer
+while the controller steers one layer (always active); one training step.
 
     python benchmarks/bench_policy.py [--checkpoint PATH ...] [--repeats 20] [--batch 32]
 
@@ -19,6 +20,8 @@ import torch
 from vlactl.models.hooks import capture
 from vlactl.models.registry import MODELS, load_policy, policy_class
 from vlactl.models.parts.policy import WEIGHTS_FILE
+from vlactl.steering.probes import REGRESSION, Probe
+from vlactl.steering.steer import Constraint, Steerer
 
 INSTRUCTION = "pick up the black bowl between the plate and the ramekin and place it on the plate"
 
@@ -93,7 +96,7 @@ def main() -> None:
     args = parser.parse_args()
     policies = [load_policy(p) for p in args.checkpoint] or [default_policy(name) for name in MODELS]
     print(f"{'model':15s} {'params':>8s} {'ckpt MB':>8s} {'chunk/replan':>12s} {'ms/step 1t':>10s} {'(cpu)':>6s} "
-          f"{'ms/step 2t':>10s} {'capture all':>11s} {'train s/step':>12s}")
+          f"{'ms/step 2t':>10s} {'capture all':>11s} {'+ control':>10s} {'train s/step':>12s}")
     for policy in policies:
         obs = observation(policy.config)
         with tempfile.TemporaryDirectory() as tmp:
@@ -106,19 +109,31 @@ def main() -> None:
             with capture(policy, policy.layer_names()):
                 policy.predict_action_chunk(obs)
 
+        layer = policy.layer_names()[1]
+        width = policy.layer_width(layer)
+        probe = Probe(feature="z", kind=REGRESSION, layer=layer, model=policy.name, pooling="prefix",
+                      weight=torch.randn(width, dtype=torch.float64), bias=0.0, mean=torch.zeros(width),
+                      std=torch.ones(width))
+
+        def steered():  # the box lies beyond every reading: the controller acts at every forward
+            with capture(policy, policy.layer_names()), Steerer(policy, [Constraint(probe, 1e4, float("inf"))]):
+                policy.predict_action_chunk(obs)
+
         per_step = policy.replan_every
         torch.set_num_threads(2)
         two, _ = time_ms(predict, args.repeats)
         torch.set_num_threads(1)
         one, one_cpu = time_ms(predict, args.repeats)
         _, captured_cpu = time_ms(captured, args.repeats)
+        _, steered_cpu = time_ms(steered, args.repeats)
         step = train_step_s(policy, args.batch) if args.batch else float("nan")
         params = sum(p.numel() for p in policy.parameters()) / 1e6
         print(f"{policy.name:15s} {params:7.2f}M {mb:8.1f} {policy.chunk_size:>6d}/{per_step:<5d} "
               f"{one / per_step:10.1f} {one_cpu / per_step:6.1f} {two / per_step:10.1f} "
-              f"{100 * (captured_cpu / one_cpu - 1):+10.0f}% {step:12.3f}")
+              f"{100 * (captured_cpu / one_cpu - 1):+10.1f}% {100 * (steered_cpu / one_cpu - 1):+9.1f}% {step:12.3f}")
     print("ms/step: one predict_action_chunk over the actions executed from it (replan_every), wall and (cpu) time, "
-          f"median of {args.repeats}; capture all: extra CPU time with every layer captured; "
+          f"median of {args.repeats}; capture all: extra CPU time with every layer captured; + control: the same "
+          f"with the minimal controller active at {policy.layer_names()[1]}; "
           f"train: CPU s per step, batch {args.batch}, 1 thread")
 
 
