@@ -61,3 +61,20 @@ def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
 def test_bad_input_is_a_usage_error(tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):
         rollout(tmp_path, *extra)
+
+
+def test_plot_readings_puts_every_controlled_reading_in_the_box(probes, tmp_path):
+    demos, out = probes.parent / "demos", tmp_path / "fig"
+    result = CliRunner().invoke(app, [
+        "plot", "readings", "model=random", f"probes={probes}", f"dataset={demos}", f"cache_dir={probes.parent / 'cache'}",
+        "frames=8", "zmin=-4", "zmax=-3", "alpha=2", f"output_dir={out}", "formats=[png]", "threads=1",
+    ])
+    assert result.exit_code == 0, result.output
+    table = pd.read_parquet(out / "readings.parquet")
+    assert sorted(table["condition"].unique()) == ["alpha", "control", "none"]
+    controlled = table[table["condition"] == "control"]["reading"]
+    assert len(controlled) == 8 and controlled.between(-4 - 1e-4, -3 + 1e-4).all()  # float32 rounding of x + u
+    none = table[table["condition"] == "none"].set_index("frame")["reading"]
+    pushed = table[table["condition"] == "alpha"].set_index("frame")["reading"]
+    assert (pushed - none > 0).all()  # a positive alpha moves every reading up along W
+    assert (out / "fig3_readings.png").stat().st_size > 0

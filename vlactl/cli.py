@@ -190,6 +190,19 @@ def plot_rollouts(
     run_plot_rollouts(load_config("plot_rollouts", _overrides(overrides, root=root)))
 
 
+@plot_app.command("readings")
+def plot_readings(
+    overrides: Optional[List[str]] = OVERRIDES,
+    model: Optional[str] = typer.Option(None, "--model", help="Registry name or checkpoint folder."),
+    probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder (vlactl train-probes)."),
+):
+    """Fig. 3: a probe's readings under no intervention, a fixed alpha W push and the controller, with the box."""
+    from vlactl.config import load_policy_stage_config
+    from vlactl.plots.readings import run_plot_readings
+
+    run_plot_readings(load_policy_stage_config("plot_readings", _overrides(overrides, model=model, probes=probes)))
+
+
 def main() -> None:
     try:
         app(standalone_mode=True)
