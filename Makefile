@@ -6,7 +6,7 @@ PIP := $(BIN)/python -m pip --disable-pip-version-check -q
 export HF_HUB_OFFLINE := 1
 export MUJOCO_GL ?= egl
 
-.PHONY: install system-deps demo policies test test-slow bench clean-venv
+.PHONY: install system-deps demo policies paper test test-slow bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -42,6 +42,28 @@ policies: install
 	  rm -rf data/policies/$$m.new && cp -r outputs/policies/$$m/checkpoint data/policies/$$m.new && \
 	  rm -rf data/policies/$$m && mv data/policies/$$m.new data/policies/$$m; \
 	done
+
+# The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
+# Fig. 1, sweep and Fig. 2, readings and Fig. 3, rollouts (unconstrained, then every constraint x method) and
+# Figs. 4-8 with summary.md. Every stage resumes when re-run; any stage can be re-run alone from the one before.
+PAPER_MODEL ?= hybrid
+PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
+PAPER_EPISODES ?= 10
+PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
+PAPER_METHODS ?= none prompt control alpha
+PAPER_ARGS ?=
+paper:
+	$(BIN)/vlactl collect model=$(PAPER_MODEL) every=4 output_dir=$(PAPER_DIR)/activations
+	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes
+	$(BIN)/vlactl plot probes run_dir=$(PAPER_DIR)/probes
+	$(BIN)/vlactl sweep model=$(PAPER_MODEL) probes=$(PAPER_DIR)/probes output_dir=$(PAPER_DIR)/sweep
+	$(BIN)/vlactl plot sweep run_dir=$(PAPER_DIR)/sweep
+	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) probes=$(PAPER_DIR)/probes
+	$(BIN)/vlactl rollout model=$(PAPER_MODEL) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
+	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
+	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
+	    episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS) || exit 1; done; done
+	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 
 test:
 	$(BIN)/python -m pytest -q

@@ -34,6 +34,8 @@ def test_figures_from_every_constrained_run_under_the_root(tmp_path):
     assert result.exit_code == 0, result.output
     for name in ("violins_gripper", "violins_height", "success_vs_satisfaction"):
         assert (tmp_path / "figures" / f"{name}.png").stat().st_size > 0
+    table = (tmp_path / "figures" / "summary.md").read_text().splitlines()
+    assert len(table) == 2 + 4 and table[2].startswith("| gripper=closed | prompt | 6 |")
 
 
 def test_no_constrained_run_is_a_usage_error(tmp_path):

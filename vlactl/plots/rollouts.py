@@ -4,7 +4,8 @@
   constrained quantity relative to its reference level (gripper action vs 0, z vs the start height, speed vs the
   threshold): the constraint asks for the side of 0 the condition names (Figs. 4, 5, 7).
 - `success_vs_satisfaction`: per condition and method, mean constraint satisfaction against success rate over tasks,
-  with a one-standard-deviation ellipse of the per-task values (Figs. 6, 8).
+  with a one-standard-deviation ellipse of the per-task values (Figs. 6, 8);
+- `summary.md`: success and satisfaction per constraint and method, the unconstrained run included.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from omegaconf import DictConfig
 
 from vlactl.config import resolve_path
 from vlactl.errors import UsageError
+from vlactl.io import atomic_write_text
 from vlactl.plots.files import check_formats, plt, save_figure
 
 METHOD_ORDER = ("none", "prompt", "control", "alpha")
@@ -90,6 +92,19 @@ def figure_success_vs_satisfaction(episodes: pd.DataFrame):
     return fig
 
 
+def summary_table(folders: list[Path]) -> str:
+    """Markdown: success and satisfaction per constraint and method, over every run (the unconstrained one too)."""
+    episodes = pd.concat([pd.read_parquet(f / "episodes.parquet") for f in folders], ignore_index=True)
+    if "satisfaction" not in episodes:
+        episodes["satisfaction"] = np.nan
+    rows = ["| constraint | method | episodes | success | satisfaction |", "|---|---|---|---|---|"]
+    for (constraint, method), group in episodes.groupby(["constraint", "method"], sort=True):
+        sat = group["satisfaction"].mean()
+        rows.append(f"| {constraint} | {method} | {len(group)} | {100 * group['success'].mean():.0f}% | "
+                    f"{'–' if np.isnan(sat) else f'{100 * sat:.0f}%'} |")
+    return "\n".join(rows) + "\n"
+
+
 def run_plot_rollouts(cfg: DictConfig) -> list[Path]:
     check_formats(cfg.formats)
     root = resolve_path(cfg.root)
@@ -104,5 +119,7 @@ def run_plot_rollouts(cfg: DictConfig) -> list[Path]:
         written += save_figure(figure_violins(steps, feature), out, f"violins_{feature}", cfg.formats, cfg.dpi)
     written += save_figure(figure_success_vs_satisfaction(episodes), out, "success_vs_satisfaction", cfg.formats,
                            cfg.dpi)
+    atomic_write_text(out / "summary.md", summary_table(folders))
+    written.append(out / "summary.md")
     print(f"wrote {len(written)} files under {out}", file=sys.stderr)
     return written
