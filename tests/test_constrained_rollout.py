@@ -57,6 +57,7 @@ def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
     (["method=steer"], "method"),
     (["constraint=none", "method=prompt"], "needs a constraint"),
     (["constraint=speed=slow"], "unknown constraint 'speed=slow'"),
+    (["method=meandiff", "probes=/nonexistent"], "not a probe run folder"),
 ])
 def test_bad_input_is_a_usage_error(tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):
@@ -78,3 +79,10 @@ def test_plot_readings_puts_every_controlled_reading_in_the_box(probes, tmp_path
     pushed = table[table["condition"] == "alpha"].set_index("frame")["reading"]
     assert (pushed - none > 0).all()  # a positive alpha moves every reading up along W
     assert (out / "fig3_readings.png").stat().st_size > 0
+
+
+def test_mean_difference_pushes_by_alpha_along_its_direction(probes, tmp_path):
+    rollout(tmp_path, "method=meandiff", f"probes={probes}", f"activations={probes.parent / 'acts'}", "alpha=5")
+    steps = pd.read_parquet(tmp_path / "random_libero_spatial_gripper-open_meandiff" / "steps.parquet")
+    steered = steps.dropna(subset=["u_norm"])
+    assert steered["t"].tolist() == [0, 2] and np.allclose(steered["u_norm"], 5.0, rtol=1e-4)

@@ -1,5 +1,7 @@
-"""A VLA agent under a constraint: `prompt` says it in the instruction; `control` and `alpha` steer the constrained
-probe's layers with a `Steerer` at every prediction made inside the constraint window (SPEC.md §3).
+"""A VLA agent under a constraint: `prompt` says it in the instruction; `control`, `alpha` and `meandiff` steer the
+constrained probe's layers with a `Steerer` at every prediction made inside the constraint window (SPEC.md §3):
+the minimal controller, a fixed push along the probe direction, or a fixed push along the difference of the class
+means of the training activations.
 
 The box depends on the episode (the start height for `height=`), so it is set at each reset. The agent keeps, per
 step, the probe readings before and after the intervention at the prediction made on that step.
@@ -14,8 +16,8 @@ from vlactl.rollout.constraints import Constraint, box, prompted, reference
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
-METHODS = ("none", "prompt", "control", "alpha")
-STEERING = ("control", "alpha")
+METHODS = ("none", "prompt", "control", "alpha", "meandiff")
+STEERING = ("control", "alpha", "meandiff")
 READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active")  # per step with a steered prediction
 
 
@@ -25,6 +27,7 @@ class Steering:
 
     method: str
     probes: tuple = ()  # vlactl.steering.probes.Probe, all of the constraint's probe feature
+    directions: dict | None = None  # meandiff: layer -> unit direction towards the 'closed / high' side
     alpha: float = 4.0
     logit_margin: float = 2.0
     speed_threshold: float = 0.0
@@ -52,7 +55,8 @@ class ConstrainedAgent(VLAAgent):
             return super().act(obs)
         # alpha pushes towards the constraint: up the probe direction for closed/high, down for open/low
         alpha = self.steering.alpha if self.constraint.upper else -self.steering.alpha
-        with Steerer(self.vla, self._boxes, method=self.steering.method, alpha=alpha) as steerer:
+        method = "direction" if self.steering.method == "meandiff" else self.steering.method
+        with Steerer(self.vla, self._boxes, method=method, alpha=alpha, directions=self.steering.directions) as steerer:
             action = super().act(obs)
         first = steerer.log[0]  # the first forward through the first steered layer (row 0: one observation)
         self.readings[t] = dict(zip(READING_COLUMNS, (first["before"], first["after"], first["u_norm"], first["active"])))

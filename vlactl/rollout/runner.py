@@ -72,7 +72,26 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         if missing or not layers:
             raise UsageError(f"no {feature!r} probe for layer {missing[0] if missing else '?'} in {cfg.probes!r}")
         probes = tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
-    return Steering(cfg.method, probes, float(cfg.alpha), float(cfg.logit_margin), float(threshold or 0.0))
+    meandiff = cfg.method == "meandiff"
+    directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
+    return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
+                    speed_threshold=float(threshold or 0.0))
+
+
+def mean_difference_directions(cfg: DictConfig, constraint, layers: list[str]) -> dict:
+    """Per layer, the unit difference of the activation means of frames on the 'closed / high' side of the constraint's
+    feature and those on the other side (gripper action > 0, z or speed above its median in the activations)."""
+    import torch
+
+    from vlactl.steering.activations import ActivationStore
+    from vlactl.steering.controller import mean_difference
+
+    if cfg.activations is None:
+        raise UsageError("method=meandiff needs activations=<activation folder from `vlactl collect`>")
+    store = ActivationStore(resolve_path(cfg.activations))
+    values = store.labels[constraint.probe_feature].to_numpy(dtype=float)
+    upper = values > (0.0 if constraint.feature == "gripper" else np.median(values))
+    return {layer: mean_difference(store.load([layer])[0], torch.as_tensor(upper)).float() for layer in layers}
 
 
 def run_rollout(cfg: DictConfig, load_policy=None) -> dict:

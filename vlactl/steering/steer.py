@@ -53,7 +53,7 @@ class Steerer:
                     f"{probe.pooling!r}, width {probe.width}; this is {vla.name!r}, pooling {pooling!r}, width "
                     f"{vla.layer_width(probe.layer)}"
                 )
-        if method == "direction" and set(directions or {}) < {c.layer for c in constraints}:
+        if method == "direction" and not {c.layer for c in constraints} <= set(directions or {}):
             raise UsageError("method=direction needs a direction for every constrained layer")
         self.vla, self.method, self.alpha, self.pooling = vla, method, float(alpha), pooling
         self.directions = directions or {}
