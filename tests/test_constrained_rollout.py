@@ -45,6 +45,7 @@ def test_control_keeps_the_steered_reading_in_the_box(probes, tmp_path):
     assert summary["method"] == "control" and summary["steered_layers"] and "satisfaction" in summary
 
 
+@pytest.mark.slow
 def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
     for method in ("none", "prompt"):
         rollout(tmp_path, f"method={method}")
@@ -81,6 +82,7 @@ def test_plot_readings_puts_every_controlled_reading_in_the_box(probes, tmp_path
     assert (out / "fig3_readings.png").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_mean_difference_pushes_by_alpha_along_its_direction(probes, tmp_path):
     rollout(tmp_path, "method=meandiff", f"probes={probes}", f"activations={probes.parent / 'acts'}", "alpha=5")
     steps = pd.read_parquet(tmp_path / "random_libero_spatial_gripper-open_meandiff" / "steps.parquet")
