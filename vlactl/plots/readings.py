@@ -19,7 +19,7 @@ from vlactl.errors import UsageError
 from vlactl.io import atomic_write_parquet
 from vlactl.models.base import PolicyInput
 from vlactl.plots.files import check_formats, plt, save_figure
-from vlactl.steering.collect import CAMERAS
+from vlactl.steering.collect import CAMERAS, frame_batch, spread
 from vlactl.steering.probe_file import load_probe
 from vlactl.steering.steer import Constraint, Steerer
 from vlactl.steering.train_probes import METRICS_NAME, best_layers, probe_filename
@@ -75,13 +75,11 @@ def run_plot_readings(cfg: DictConfig, load_policy=None) -> list[Path]:
     vla = (load_policy or registry_load)(str(cfg.model))
     probe = load_probe(path, model=vla.name, width=vla.layer_width(layer))
     frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
-    index_all = np.unique(np.linspace(0, len(frames) - 1, min(cfg.frames, len(frames))).round().astype(int))
+    index_all = spread(len(frames), cfg.frames)
     parts = []
     for start in range(0, len(index_all), cfg.batch_size):
         index = index_all[start : start + cfg.batch_size]
-        images = np.asarray(frames.images[index])
-        obs = PolicyInput({cam: images[:, k] for k, cam in enumerate(CAMERAS)}, frames.state[index],
-                          [frames.tasks[t] for t in frames.task[index]])
+        obs = frame_batch(frames, index)
         parts.append(readings(vla, probe, float(cfg.zmin), float(cfg.zmax), float(cfg.alpha), obs).assign(
             frame=lambda d, index=index: index[d["row"]]))
     result = pd.concat(parts, ignore_index=True).drop(columns="row")

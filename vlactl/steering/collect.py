@@ -96,6 +96,18 @@ def _groups(episodes: np.ndarray, rows: np.ndarray, batch_size: int):
         yield np.concatenate(group)
 
 
+def frame_batch(frames: Frames, index: np.ndarray) -> PolicyInput:
+    """Dataset frames as one policy input (images from the cache, LIBERO state, instructions)."""
+    images = np.asarray(frames.images[index])
+    return PolicyInput(images={cam: images[:, k] for k, cam in enumerate(CAMERAS)}, state=frames.state[index],
+                       instruction=[frames.tasks[t] for t in frames.task[index]])
+
+
+def spread(n_frames: int, n: int) -> np.ndarray:
+    """About n frame indices spread evenly over a dataset of n_frames (all of them if n >= n_frames)."""
+    return np.unique(np.linspace(0, n_frames - 1, min(n, n_frames)).round().astype(int))
+
+
 def pooled_activations(vla, layers: list[str], pooling: str, obs: PolicyInput) -> dict[str, np.ndarray]:
     """One `encode` of a batch with every chosen layer captured: layer -> [B, width] float32."""
     with capture(vla, layers, pooling) as readings, torch.inference_mode():
@@ -147,13 +159,7 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
                 pieces = []
                 for start in range(0, len(group), cfg.batch_size):
                     index = group[start : start + cfg.batch_size]
-                    images = np.asarray(frames.images[index])
-                    obs = PolicyInput(
-                        images={cam: images[:, k] for k, cam in enumerate(CAMERAS)},
-                        state=frames.state[index],
-                        instruction=labels["instruction"].iloc[index].tolist(),
-                    )
-                    pieces.append(pooled_activations(vla, layers, cfg.pooling, obs))
+                    pieces.append(pooled_activations(vla, layers, cfg.pooling, frame_batch(frames, index)))
                     bar.update(len(index))
                 writer.append({name: np.concatenate([p[name] for p in pieces]) for name in layers}, labels.iloc[group])
     print(f"wrote {writer.n_frames} frames x {len(layers)} layers to {out}", file=sys.stderr)

@@ -28,7 +28,7 @@ from vlactl.errors import UsageError, check_choice, check_positive
 from vlactl.io import atomic_write_parquet, ensure_writable_dir
 from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture, intervene
-from vlactl.steering.collect import CAMERAS, choose_layers
+from vlactl.steering.collect import CAMERAS, choose_layers, frame_batch, spread
 from vlactl.steering.probe_file import load_probe
 from vlactl.steering.train_probes import probe_filename
 
@@ -89,7 +89,7 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     layers = choose_layers(vla, cfg.layers)
     units = directions(cfg, vla, layers)
     frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
-    rows_all = np.unique(np.linspace(0, len(frames) - 1, min(cfg.frames, len(frames))).round().astype(int))
+    rows_all = spread(len(frames), cfg.frames)
     name = cfg.feature if cfg.direction == "probe" else cfg.direction
     out = resolve_path(cfg.output_dir) if cfg.output_dir else REPO_ROOT / "outputs" / "sweeps" / f"{Path(str(cfg.model)).name}_{name}"
     ensure_writable_dir(out, cfg.output_dir)
@@ -99,9 +99,7 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     with tqdm(total=total, desc=f"sweep {vla.name}", unit="frame") as bar:
         for start in range(0, len(rows_all), cfg.batch_size):
             index = rows_all[start : start + cfg.batch_size]
-            images = np.asarray(frames.images[index])
-            obs = PolicyInput({cam: images[:, k] for k, cam in enumerate(CAMERAS)}, frames.state[index],
-                              [frames.tasks[t] for t in frames.task[index]])
+            obs = frame_batch(frames, index)
             with capture(vla, layers, cfg.pooling) as seen, torch.inference_mode():
                 vla.encode(obs)
             for layer in layers:
