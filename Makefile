@@ -26,10 +26,13 @@ install: $(BIN)/python system-deps
 	$(PIP) install --no-deps lerobot==0.4.4
 	$(BIN)/vlactl --help >/dev/null && echo "vlactl installed in $(VENV)"
 
-# The main job on the embedded default, small enough for a first run: list the suite, generate two demonstrations.
+# The main job on the embedded default, small enough for a first run: list the suite, generate two demonstrations,
+# and run the shipped hybrid VLA closed loop on two episodes of each of two tasks (with a video).
 demo: install
 	$(BIN)/vlactl tasks --suite libero_spatial
 	$(BIN)/vlactl demos suite=libero_spatial tasks=[0] episodes_per_task=2 workers=1 output_dir=outputs/demo/libero_spatial
+	$(BIN)/vlactl rollout model=hybrid suite=libero_spatial tasks=[0,1] episodes_per_task=2 workers=2 --video \
+	  output_root=outputs/demo run_name=hybrid_libero_spatial
 
 # Rebuild the shipped embedded models from scratch: the full libero_spatial demo set, then each model trained with
 # its own config (conf/model/<name>.yaml; about 2 h each on 2 CPU cores), its checkpoint copied into data/policies/.
