@@ -59,3 +59,11 @@ def resolve_path(path: str | Path) -> Path:
     """Relative paths in configs are relative to the repository root, so commands work from any directory."""
     path = Path(path).expanduser()
     return path if path.is_absolute() else REPO_ROOT / path
+
+
+def stage_output(path: str | Path, marker: str, kind: str, command: str) -> Path:
+    """The output folder of an earlier stage, recognised by its `marker` file; a UsageError naming it otherwise."""
+    folder = resolve_path(path)
+    if not (folder / marker).is_file():
+        raise UsageError(f"{str(path)!r} is not a {kind} folder (no {marker}); write one with `{command}`")
+    return folder

@@ -13,7 +13,7 @@ import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from vlactl.config import resolve_path
+from vlactl.config import resolve_path, stage_output
 from vlactl.data.frames import load_frames
 from vlactl.errors import UsageError
 from vlactl.io import atomic_write_parquet
@@ -63,9 +63,7 @@ def run_plot_readings(cfg: DictConfig, load_policy=None) -> list[Path]:
     check_formats(cfg.formats)
     if OmegaConf.is_missing(cfg, "model") or OmegaConf.is_missing(cfg, "probes"):
         raise UsageError("pass model=<name or checkpoint> and probes=<probe run folder from `vlactl train-probes`>")
-    run = resolve_path(cfg.probes)
-    if not (run / METRICS_NAME).is_file():
-        raise UsageError(f"{cfg.probes!r} is not a probe run folder (no {METRICS_NAME})")
+    run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
     table = pd.read_parquet(run / METRICS_NAME)
     layer = cfg.layer or next(iter(best_layers(table[table["feature"] == cfg.feature])["layer"]), None)
     path = run / "probes" / probe_filename(str(layer), cfg.feature)

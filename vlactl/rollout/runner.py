@@ -19,7 +19,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from vlactl.config import load_policy_stage_config, resolve_path, save_config
+from vlactl.config import load_policy_stage_config, resolve_path, save_config, stage_output
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir
 from vlactl.rollout import parts
@@ -62,9 +62,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     if cfg.method in STEERING:
         if cfg.probes is None:
             raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>")
-        run = resolve_path(cfg.probes)
-        if not (run / METRICS_NAME).is_file():
-            raise UsageError(f"{cfg.probes!r} is not a probe run folder (no {METRICS_NAME})")
+        run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
         feature = constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
         layers = list(cfg.layers or best_layers(table[table["feature"] == feature])["layer"])
