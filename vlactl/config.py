@@ -7,7 +7,7 @@ from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 from hydra.errors import HydraException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from vlactl.errors import UsageError
@@ -37,12 +37,22 @@ def load_policy_stage_config(stage: str, overrides: list[str] | None = None) -> 
 
     `conf/model/` is a config group (the architectures `train-policy` builds), so Hydra would read `model=x` as
     choosing a file of that group; in these stages `model` is a plain string: a registry name or a checkpoint path.
+    Options of a real model's adapter come as `model.<option>=<value>` (e.g. `model.checkpoint=<path>`) and land
+    in `cfg.model_args`, which `vlactl.models.registry.policy_loader` binds.
     """
     overrides = list(overrides or [])
     models = [item.split("=", 1)[1] for item in overrides if item.startswith("model=")]
-    cfg = load_config(stage, [item for item in overrides if not item.startswith("model=")])
+    options = [item.split(".", 1)[1] for item in overrides if item.startswith("model.")]
+    cfg = load_config(stage, [item for item in overrides if not item.startswith(("model=", "model."))])
     if models:
         cfg.model = models[-1]
+    if options:
+        try:
+            args = OmegaConf.from_dotlist(options)
+        except OmegaConfBaseException as exc:
+            raise UsageError(f"bad model option in {options}: {str(exc).strip().splitlines()[0]}") from None
+        with open_dict(cfg):
+            cfg.model_args = args
     return cfg
 
 

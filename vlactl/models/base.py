@@ -18,11 +18,14 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 import torch
+from torch.utils.hooks import RemovableHandle
 
 POOLINGS = ("prefix", "last", "image", "text")
+LayerHook = Callable[[torch.Tensor], "torch.Tensor | None"]
 
 
 @dataclass
@@ -55,6 +58,19 @@ class VLA(ABC):
     @abstractmethod
     def layer_module(self, name: str) -> torch.nn.Module:
         """The module whose output (a tensor, or a tuple whose first item is one) is that layer's residual stream."""
+
+    def hook_layer(self, name: str, fn: LayerHook) -> list[RemovableHandle]:
+        """Call fn(hidden [B, T, d]) with the layer's output at each forward through it; a tensor fn returns replaces
+        that output. Returns the hook handles. Models whose code never calls a layer's own forward (LeRobot's SmolVLA
+        runs its layers' parts by hand) override this to reach the same residual stream another way."""
+
+        def hook(module, args, output):
+            new = fn(output[0] if isinstance(output, tuple) else output)
+            if new is None:
+                return None
+            return (new, *output[1:]) if isinstance(output, tuple) else new
+
+        return [self.layer_module(name).register_forward_hook(hook)]
 
     @abstractmethod
     def token_mask(self, name: str, pooling: str) -> torch.Tensor:

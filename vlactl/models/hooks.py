@@ -22,17 +22,9 @@ def masked_mean(hidden: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (hidden * m).sum(1) / m.sum(1).clamp(min=1)
 
 
-def _hidden(output):
-    return output[0] if isinstance(output, tuple) else output
-
-
-def _replace_hidden(output, hidden):
-    return (hidden, *output[1:]) if isinstance(output, tuple) else hidden
-
-
 @contextmanager
 def _hooks(vla: VLA, layers: list[str], make_hook) -> Iterator[None]:
-    handles = [vla.layer_module(name).register_forward_hook(make_hook(name)) for name in layers]
+    handles = [handle for name in layers for handle in vla.hook_layer(name, make_hook(name))]
     try:
         yield
     finally:
@@ -46,10 +38,10 @@ def capture(vla: VLA, layers: list[str], pooling: str = "prefix") -> Iterator[di
     readings: dict[str, list[torch.Tensor]] = {name: [] for name in layers}
 
     def make_hook(name):
-        def hook(module, args, output):
+        def hook(hidden):
             mask = vla.token_mask(name, pooling)
             if mask.any():
-                readings[name].append(masked_mean(_hidden(output).detach(), mask))
+                readings[name].append(masked_mean(hidden.detach(), mask))
 
         return hook
 
@@ -65,16 +57,14 @@ def intervene(vla: VLA, layers: list[str], fn: Intervention, pooling: str = "pre
     """
 
     def make_hook(name):
-        def hook(module, args, output):
+        def hook(hidden):
             mask = vla.token_mask(name, pooling)
             if not mask.any():
                 return None
-            hidden = _hidden(output)
             u = fn(name, masked_mean(hidden.detach(), mask))
             if u is None:
                 return None
-            shift = mask.to(hidden.dtype)[..., None] * u.to(hidden.dtype)[:, None, :]
-            return _replace_hidden(output, hidden + shift)
+            return hidden + mask.to(hidden.dtype)[..., None] * u.to(hidden.dtype)[:, None, :]
 
         return hook
 

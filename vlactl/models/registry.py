@@ -1,11 +1,14 @@
 """Model names -> classes, imported only when asked for (LeRobot's factory style), and `load_policy`.
 
 `load_policy` takes a checkpoint folder (written by `vlactl train-policy`), the name of an embedded model (its
-default checkpoint folder, which must have been trained), or `random`: a tiny untrained model for tests only.
+default checkpoint folder, which must have been trained), the name of a real VLA's adapter with its options
+(`model=pi05 model.checkpoint=<path or hub id>`; docs/real-models.md), or `random`: a tiny untrained model for
+tests only.
 """
 
 from __future__ import annotations
 
+import functools
 import importlib
 from pathlib import Path
 
@@ -15,17 +18,27 @@ MODELS = {
     "hybrid": "vlactl.models.hybrid.modeling_hybrid:HybridPolicy",
     "autoregressive": "vlactl.models.autoregressive.modeling_autoregressive:AutoregressivePolicy",
 }
+# Real VLAs: adapters around the libraries' own classes, loaded from a user's checkpoint (never shipped).
+ADAPTERS = {
+    "smolvla": "vlactl.models.smolvla:SmolVLAAdapter",
+    "pi05": "vlactl.models.pi05:PI05Adapter",
+    "openvla": "vlactl.models.openvla:OpenVLAAdapter",
+}
 RANDOM = "random"
 DEFAULT_RUN_DIR = "outputs/policies/{name}"  # where `vlactl train-policy model=<name>` writes by default
 SHIPPED_DIR = "data/policies/{name}"  # the checkpoints that come with the repository (`make policies` rebuilds them)
 CHECKPOINT_DIR = "checkpoint"  # inside a training run folder
 
 
+def _import(target: str):
+    module, _, cls = target.partition(":")
+    return getattr(importlib.import_module(module), cls)
+
+
 def policy_class(name: str):
     if name not in MODELS:
         raise UsageError(f"unknown model {name!r}; allowed: {', '.join(MODELS)}")
-    module, _, cls = MODELS[name].partition(":")
-    return getattr(importlib.import_module(module), cls)
+    return _import(MODELS[name])
 
 
 def checkpoint_folder(path: Path) -> Path | None:
@@ -38,13 +51,30 @@ def checkpoint_folder(path: Path) -> Path | None:
     return None
 
 
-def load_policy(name_or_path: str):
+def load_policy(name_or_path: str, **options):
+    """The policy a model name or path stands for; `options` (a real model's `model.<option>=` overrides) go to its
+    adapter's `load`."""
     from vlactl.models.parts.policy import read_model_name
 
+    if name_or_path in ADAPTERS:
+        return _import(ADAPTERS[name_or_path]).load(**options)
+    if options:
+        raise UsageError(
+            f"model options {', '.join(f'model.{k}' for k in options)} apply only to a real model "
+            f"({', '.join(ADAPTERS)}), not to {name_or_path!r}"
+        )
     if name_or_path == RANDOM:
         return tiny_policy("hybrid")
     folder = resolve_checkpoint(name_or_path)
     return policy_class(read_model_name(folder)).from_pretrained(folder)
+
+
+def policy_loader(cfg):
+    """`load_policy` with a stage config's real-model options (`cfg.model_args`) bound; picklable for workers."""
+    from omegaconf import OmegaConf
+
+    options = OmegaConf.to_container(cfg.model_args, resolve=True) if cfg.get("model_args") else {}
+    return functools.partial(load_policy, **options) if options else load_policy
 
 
 def resolve_checkpoint(name_or_path: str) -> Path:
@@ -56,7 +86,8 @@ def resolve_checkpoint(name_or_path: str) -> Path:
         folder = checkpoint_folder(resolve_path(name_or_path))
         if folder is None:
             raise UsageError(
-                f"unknown model {name_or_path!r}; allowed: {', '.join(MODELS)}, {RANDOM}, or a checkpoint path"
+                f"unknown model {name_or_path!r}; allowed: {', '.join([*MODELS, *ADAPTERS])}, {RANDOM}, "
+                "or a checkpoint path"
             )
         return folder
     places = [resolve_path(d.format(name=name_or_path)) for d in (DEFAULT_RUN_DIR, SHIPPED_DIR)]

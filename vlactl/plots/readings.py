@@ -58,7 +58,7 @@ def figure_readings(table: pd.DataFrame, zmin: float, zmax: float, title: str):
 
 
 def run_plot_readings(cfg: DictConfig, load_policy=None) -> list[Path]:
-    from vlactl.models.registry import load_policy as registry_load
+    from vlactl.models.registry import policy_loader
 
     check_formats(cfg.formats)
     if OmegaConf.is_missing(cfg, "model") or OmegaConf.is_missing(cfg, "probes"):
@@ -70,7 +70,7 @@ def run_plot_readings(cfg: DictConfig, load_policy=None) -> list[Path]:
     if layer is None or not path.is_file():
         raise UsageError(f"no {cfg.feature!r} probe for layer {layer} in {cfg.probes!r}")
     torch.set_num_threads(cfg.threads)
-    vla = (load_policy or registry_load)(str(cfg.model))
+    vla = (load_policy or policy_loader(cfg))(str(cfg.model))
     probe = load_probe(path, model=vla.name, width=vla.layer_width(layer))
     frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
     index_all = spread(len(frames), cfg.frames)

@@ -98,6 +98,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 
     if OmegaConf.is_missing(cfg, "model"):
         raise UsageError("model is required: model=<registry name or checkpoint path>, e.g. model=scripted")
+    if load_policy is None:
+        from vlactl.models.registry import policy_loader
+
+        load_policy = policy_loader(cfg)
     check_choice("suite", cfg.suite, SUITES)
     check_non_negative("episodes_per_task", cfg.episodes_per_task)
     check_positive("workers", cfg.workers)

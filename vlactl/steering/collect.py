@@ -128,11 +128,11 @@ def default_output(cfg: DictConfig) -> Path:
 
 def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     """Collect (or resume collecting) and return the activation folder. `load_policy` replaces the registry."""
-    from vlactl.models.registry import load_policy as registry_load
+    from vlactl.models.registry import policy_loader
 
     _check(cfg)
     torch.set_num_threads(cfg.threads)
-    vla = (load_policy or registry_load)(str(cfg.model))
+    vla = (load_policy or policy_loader(cfg))(str(cfg.model))
     layers = choose_layers(vla, cfg.layers)
     root = resolve_path(cfg.dataset)
     out = ensure_writable_dir(resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg), cfg.output_dir)

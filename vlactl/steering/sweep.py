@@ -81,11 +81,11 @@ def _predict(vla, obs: PolicyInput, layer: str | None = None, u: torch.Tensor | 
 
 
 def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
-    from vlactl.models.registry import load_policy as registry_load
+    from vlactl.models.registry import policy_loader
 
     _check(cfg)
     torch.set_num_threads(cfg.threads)
-    vla = (load_policy or registry_load)(str(cfg.model))
+    vla = (load_policy or policy_loader(cfg))(str(cfg.model))
     layers = choose_layers(vla, cfg.layers)
     units = directions(cfg, vla, layers)
     frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
