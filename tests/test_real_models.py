@@ -1,0 +1,155 @@
+"""The real VLAs' adapters on tiny random checkpoints of their library classes (see real_model_fixtures.py): loading
+through the registry, layer names, read-out sets, reading and writing a layer through the hooks, action
+conventions, and the pipeline's own commands with `model.checkpoint=`."""
+
+import numpy as np
+import pytest
+import torch
+from real_model_fixtures import OPENVLA_PROMPT, write_llava, write_smolvla
+from synthetic_demos import observation, write_synthetic_demos
+
+from vlactl.config import load_policy_stage_config
+from vlactl.errors import UsageError
+from vlactl.models.hooks import capture, intervene
+from vlactl.models.openvla import bin_centres, decode_actions, to_libero_gripper
+from vlactl.models.registry import load_policy
+from vlactl.steering.activations import ActivationStore
+from vlactl.steering.collect import run_collect
+
+INSTRUCTIONS = ["pick up the black bowl on the stove", "place it on the plate"]
+
+
+@pytest.fixture(scope="module")
+def smolvla_checkpoint(tmp_path_factory):
+    return write_smolvla(tmp_path_factory.mktemp("smolvla"))
+
+
+@pytest.fixture(scope="module")
+def openvla_checkpoint(tmp_path_factory):
+    return write_llava(tmp_path_factory.mktemp("openvla"))
+
+
+def load_smolvla(folder):
+    return load_policy("smolvla", checkpoint=str(folder))
+
+
+def load_openvla(folder):
+    return load_policy("openvla", checkpoint=str(folder), prompt=OPENVLA_PROMPT, append_token=None)
+
+
+def obs(batch=2):
+    o = observation(batch)
+    o.instruction = INSTRUCTIONS[:batch]
+    return o
+
+
+def seeded_chunk(vla, o, seed=1):
+    torch.manual_seed(seed)  # the flow's initial noise
+    return vla.predict_action_chunk(o)
+
+
+def reading(vla, layer, o, fn=None):
+    with intervene(vla, [layer], fn or (lambda name, h: None)), capture(vla, [layer]) as got:
+        vla.encode(o)
+    return got[layer][0]
+
+
+# --- SmolVLA (LeRobot's own class) ----------------------------------------------------------------------------------
+def test_smolvla_names_both_stacks_and_predicts_lerobot_chunks(smolvla_checkpoint):
+    vla = load_smolvla(smolvla_checkpoint)
+    assert vla.layer_names() == [f"backbone.{i}" for i in range(4)] + [f"expert.{i}" for i in range(4)]
+    assert (vla.chunk_size, vla.replan_every) == (4, 2)
+    assert vla.cameras == {"image": "observation.images.image", "wrist_image": "observation.images.image2"}
+    chunk = seeded_chunk(vla, obs())
+    assert chunk.shape == (2, 4, 7) and torch.isfinite(chunk).all()
+    assert torch.equal(chunk, seeded_chunk(vla, obs()))
+
+
+def test_smolvla_read_out_sets_follow_the_prefix_it_builds(smolvla_checkpoint):
+    vla = load_smolvla(smolvla_checkpoint)
+    with capture(vla, vla.layer_names()) as got:
+        vla.encode(obs())
+    assert {name: tuple(got[name][0].shape) for name in ("backbone.0", "expert.0")} == {
+        "backbone.0": (2, vla.layer_width("backbone.0")), "expert.0": (2, vla.layer_width("expert.0"))}
+    image, text, prefix = (vla.token_mask("backbone.0", p) for p in ("image", "text", "prefix"))
+    assert image.sum(1).tolist() == [8, 8]  # two cameras x 4 tokens (32 px, 8 px patches, pixel shuffle 2)
+    tokenizer = vla.policy.model.vlm_with_expert.processor.tokenizer
+    assert text.sum(1).tolist() == [len(tokenizer(t + "\n")["input_ids"]) for t in INSTRUCTIONS]
+    assert (prefix.sum(1) == image.sum(1) + text.sum(1) + 1).all()  # + the state token
+    assert not (image & text).any()
+
+
+@pytest.mark.parametrize("layer", ["backbone.1", "expert.2"])
+def test_smolvla_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(smolvla_checkpoint, layer):
+    vla = load_smolvla(smolvla_checkpoint)
+    u = torch.full((2, vla.layer_width(layer)), 0.5)
+    before, after = reading(vla, layer, obs()), reading(vla, layer, obs(), lambda name, h: u)
+    torch.testing.assert_close(after - before, u, atol=1e-4, rtol=0)
+    plain = seeded_chunk(vla, obs())
+    with intervene(vla, [layer], lambda name, h: 10 * u):
+        steered = seeded_chunk(vla, obs())
+    assert (steered - plain).abs().max() > 1e-3
+    assert torch.equal(plain, seeded_chunk(vla, obs()))  # hooks are gone after the context
+
+
+def test_smolvla_collect_runs_through_the_pipeline_command(smolvla_checkpoint, tmp_path):
+    demos = write_synthetic_demos(tmp_path / "demos", episodes=2, frames=4)
+    cfg = load_policy_stage_config("collect", [
+        "model=smolvla", f"model.checkpoint={smolvla_checkpoint}", f"dataset={demos}", f"output_dir={tmp_path / 'a'}",
+        f"cache_dir={tmp_path / 'cache'}", "batch_size=4", "threads=1", "layers=[backbone.3,expert.0]",
+    ])
+    store = ActivationStore(run_collect(cfg))
+    assert store.layers == ["backbone.3", "expert.0"] and store.n_frames == 2 * 4 + 1
+    assert torch.isfinite(store.load(["backbone.3"])).all()
+
+
+# --- OpenVLA (tiny LLaVA stand-in) ----------------------------------------------------------------------------------
+def test_openvla_decodes_action_tokens_like_predict_action():
+    vocab, centres = 1000, bin_centres()
+    tokens = np.array([[vocab - 1 - 0, vocab - 1 - 254, vocab - 1 - 127, vocab - 1, vocab - 1, vocab - 1, vocab - 1]])
+    stats = {"q01": [-2.0] * 7, "q99": [2.0] * 7, "mask": [True] * 6 + [False]}
+    actions = decode_actions(tokens, vocab, stats)
+    np.testing.assert_allclose(actions[0, :3], 0.5 * (centres[[0, 254, 127]] + 1) * 4 - 2)
+    assert actions[0, 6] == centres[0]  # the gripper is not un-normalised
+    np.testing.assert_array_equal(to_libero_gripper(np.array([[0, 0, 0, 0, 0, 0, 0.9], [0] * 6 + [0.1]]))[:, 6],
+                                  [-1.0, 1.0])  # open -> -1, close -> +1
+
+
+def test_openvla_reads_the_prompt_pass_and_leaves_decode_steps_alone(openvla_checkpoint):
+    vla = load_openvla(openvla_checkpoint)
+    assert vla.layer_names() == ["backbone.0", "backbone.1", "backbone.2"] and vla.chunk_size == 1
+    with capture(vla, vla.layer_names()) as got:
+        chunk = vla.predict_action_chunk(obs())
+    assert chunk.shape == (2, 1, 7) and set(chunk[:, 0, 6].tolist()) <= {-1.0, 1.0}
+    assert [len(got[name]) for name in vla.layer_names()] == [2, 2, 2]  # one prompt pass per observation, no decodes
+    vla.encode(obs())
+    image, text, prefix = (vla.token_mask("backbone.0", p) for p in ("image", "text", "prefix"))
+    assert image.sum(1).tolist() == [16, 16]  # (32 px / 8 px)^2 patches
+    assert image[:, 0].logical_not().all() and image[:, 1:17].all()  # right after BOS
+    assert (text.sum(1) + image.sum(1) == prefix.sum(1)).all() and prefix.sum(1)[0] != prefix.sum(1)[1]
+
+
+def test_openvla_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(openvla_checkpoint):
+    vla = load_openvla(openvla_checkpoint)
+    u = torch.full((2, 32), 0.5)
+    before, after = reading(vla, "backbone.1", obs()), reading(vla, "backbone.1", obs(), lambda name, h: u)
+    torch.testing.assert_close(after - before, u, atol=1e-4, rtol=0)
+    plain = vla.predict_action_chunk(obs())
+    with intervene(vla, ["backbone.0"], lambda name, h: torch.full((h.shape[0], 32), 50.0)):
+        steered = vla.predict_action_chunk(obs())
+    assert not torch.equal(plain, steered)
+
+
+def test_openvla_refuses_an_unknown_unnorm_key(openvla_checkpoint):
+    with pytest.raises(UsageError, match="unnorm_key='bridge_orig'.*libero_spatial"):
+        load_policy("openvla", checkpoint=str(openvla_checkpoint), unnorm_key="bridge_orig")
+
+
+# --- options -----------------------------------------------------------------------------------------------------
+def test_model_options_reach_the_adapter_and_are_refused_elsewhere():
+    cfg = load_policy_stage_config("collect", ["model=openvla", "model.checkpoint=/ckpt", "model.unnorm_key=libero_10"])
+    assert cfg.model == "openvla" and dict(cfg.model_args) == {"checkpoint": "/ckpt", "unnorm_key": "libero_10"}
+    with pytest.raises(UsageError, match="model=pi05 needs model.checkpoint"):
+        load_policy("pi05")
+    with pytest.raises(UsageError, match="model.checkpoint apply only to a real model"):
+        load_policy("hybrid", checkpoint="/ckpt")
