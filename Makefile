@@ -21,7 +21,7 @@ system-deps:
 	fi
 
 install: $(BIN)/python system-deps
-	$(PIP) install -e '.[dev]'
+	$(PIP) install -c constraints.txt -e '.[dev]'
 	# LeRobot 0.4.4 pins torch<2.11 (a multi-GB CUDA download); its code runs with ours, so install it alone.
 	$(PIP) install --no-deps lerobot==0.4.4
 	$(BIN)/vlactl --help >/dev/null && echo "vlactl installed in $(VENV)"
@@ -55,16 +55,17 @@ PAPER_EPISODES ?= 10
 PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
 PAPER_METHODS ?= none prompt control alpha
 PAPER_ARGS ?=
+PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
 paper:
-	$(BIN)/vlactl collect model=$(PAPER_MODEL) every=4 output_dir=$(PAPER_DIR)/activations
+	$(BIN)/vlactl collect model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) every=4 output_dir=$(PAPER_DIR)/activations
 	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes
 	$(BIN)/vlactl plot probes run_dir=$(PAPER_DIR)/probes
-	$(BIN)/vlactl sweep model=$(PAPER_MODEL) probes=$(PAPER_DIR)/probes output_dir=$(PAPER_DIR)/sweep
+	$(BIN)/vlactl sweep model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes output_dir=$(PAPER_DIR)/sweep
 	$(BIN)/vlactl plot sweep run_dir=$(PAPER_DIR)/sweep
-	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) probes=$(PAPER_DIR)/probes
-	$(BIN)/vlactl rollout model=$(PAPER_MODEL) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
+	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes
+	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
-	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
+	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
 	    episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 

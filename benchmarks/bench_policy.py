@@ -26,9 +26,9 @@ from vlactl.steering.steer import Constraint, Steerer
 INSTRUCTION = "pick up the black bowl between the plate and the ramekin and place it on the plate"
 
 
-def default_policy(name: str):
+def default_policy(name: str, **overrides):
     cls = policy_class(name)
-    config = cls.config_class()
+    config = cls.config_class(**overrides)
     rng = np.random.default_rng(0)
     processor = cls.processor_class.fit(config, [INSTRUCTION], rng.normal(size=(100, 8)), rng.uniform(-1, 1, (100, 7)))
     return cls(config, processor).eval()
@@ -41,6 +41,32 @@ def observation(config):
     size = config.image_size
     images = {cam: rng.integers(0, 256, (1, size, size, 3), dtype=np.uint8) for cam in config.cameras}
     return PolicyInput(images, rng.normal(size=(1, 8)).astype(np.float32), [INSTRUCTION])
+
+
+def observed_steps(policy, obs, sync=lambda: None):
+    """Three policy steps to time: plain; every layer captured; every layer captured while the minimal controller
+    steers the second layer with a box beyond every reading, so it acts at every forward."""
+    layer = policy.layer_names()[1]
+    width = policy.layer_width(layer)
+    probe = Probe(feature="z", kind=REGRESSION, layer=layer, model=policy.name, pooling="prefix",
+                  weight=torch.randn(width, dtype=torch.float64), bias=0.0, mean=torch.zeros(width),
+                  std=torch.ones(width))
+
+    def predict():
+        policy.predict_action_chunk(obs)
+        sync()
+
+    def captured():
+        with capture(policy, policy.layer_names()):
+            policy.predict_action_chunk(obs)
+        sync()
+
+    def steered():
+        with capture(policy, policy.layer_names()), Steerer(policy, [Constraint(probe, 1e4, float("inf"))]):
+            policy.predict_action_chunk(obs)
+        sync()
+
+    return predict, captured, steered
 
 
 def time_ms(fn, repeats: int) -> tuple[float, float]:
@@ -102,23 +128,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             policy.save_pretrained(Path(tmp))
             mb = (Path(tmp) / WEIGHTS_FILE).stat().st_size / 2**20
-        def predict():
-            policy.predict_action_chunk(obs)
-
-        def captured():
-            with capture(policy, policy.layer_names()):
-                policy.predict_action_chunk(obs)
-
-        layer = policy.layer_names()[1]
-        width = policy.layer_width(layer)
-        probe = Probe(feature="z", kind=REGRESSION, layer=layer, model=policy.name, pooling="prefix",
-                      weight=torch.randn(width, dtype=torch.float64), bias=0.0, mean=torch.zeros(width),
-                      std=torch.ones(width))
-
-        def steered():  # the box lies beyond every reading: the controller acts at every forward
-            with capture(policy, policy.layer_names()), Steerer(policy, [Constraint(probe, 1e4, float("inf"))]):
-                policy.predict_action_chunk(obs)
-
+        predict, captured, steered = observed_steps(policy, obs)
         per_step = policy.replan_every
         torch.set_num_threads(2)
         two, _ = time_ms(predict, args.repeats)
