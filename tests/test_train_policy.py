@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 
 from vlactl.cli import app
 from vlactl.config import load_config
+from vlactl.errors import UsageError
 from vlactl.models.registry import load_policy
 from vlactl.training.train_policy import STATE_FILE, run_train_policy
 
@@ -88,3 +89,19 @@ def test_bad_inputs_are_usage_errors(tmp_path):
         run_train_policy(load_config("train_policy", [f"dataset={tmp_path}", f"output_dir={tmp_path / 'o'}"]))
     with pytest.raises(UsageError):
         load_config("train_policy", ["model=transformer"])
+
+
+def test_fine_tuning_starts_from_the_checkpoint_and_refuses_another_architecture(demos, tmp_path, monkeypatch):
+    from vlactl.training import train_policy
+
+    source = tmp_path / "source"
+    run_train_policy(load_config("train_policy", overrides(demos, source, steps=2)))
+    started = {}
+    monkeypatch.setattr(train_policy.Run, "save", lambda run: started.setdefault("weights", {
+        k: v.clone() for k, v in run.policy.state_dict().items()}))
+    run_train_policy(load_config("train_policy", overrides(demos, tmp_path / "tuned", "hybrid", 1, f"init_from={source}")))
+    expected = load_policy(str(source)).state_dict()
+    assert all(torch.equal(started["weights"][k], expected[k]) for k in expected)
+    with pytest.raises(UsageError, match="different hybrid architecture"):
+        run_train_policy(load_config("train_policy", overrides(demos, tmp_path / "other", "hybrid", 1,
+                                                               f"init_from={source}", "model.layers=3")))

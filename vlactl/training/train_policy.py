@@ -108,6 +108,17 @@ class Run:
         _set_rng_state(state["rng"])
 
 
+def _starting_policy(cls, config, init_from: str):
+    """The checkpoint a fine-tuning run starts from; its architecture must be the one being trained."""
+    from vlactl.models.registry import resolve_checkpoint
+
+    start = cls.from_pretrained(resolve_checkpoint(init_from))
+    if start.config.to_dict() != config.to_dict():
+        raise UsageError(f"init_from={init_from!r} is a different {cls.name} architecture than model={cls.name} "
+                         "(conf/model/); train from scratch or override the model fields to match")
+    return start
+
+
 def run_train_policy(cfg: DictConfig) -> Path:
     """Train (or resume) and return the checkpoint folder."""
     from tqdm import tqdm
@@ -127,12 +138,17 @@ def run_train_policy(cfg: DictConfig) -> Path:
     random.seed(cfg.seed)
     np.random.seed(cfg.seed)
     torch.manual_seed(cfg.seed)
+    start = None if resuming or not cfg.init_from else _starting_policy(cls, config, str(cfg.init_from))
     if resuming:
         processor = cls.processor_class.load(config, out / CHECKPOINT_DIR)
+    elif start is not None:  # fine-tuning keeps the normalisation the weights were trained with
+        processor = start.processor
     else:
         instructions = [frames.tasks[t] for t in np.unique(frames.task)]
         processor = cls.processor_class.fit(config, instructions, frames.state, frames.action)
     policy = cls(config, processor)
+    if start is not None:
+        policy.load_state_dict(start.state_dict())
     optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=(0.9, 0.95), weight_decay=cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps, cfg.min_lr_ratio)
