@@ -36,6 +36,8 @@ SIGLIP_SO400M = dict(hidden_size=1152, intermediate_size=4304, num_hidden_layers
                      image_size=224, patch_size=14)
 SMOLVLM2_500M = dict(hidden_size=960, intermediate_size=2560, num_attention_heads=15, num_key_value_heads=5,
                      head_dim=64)
+SMOLVLM2_VISION = dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12,
+                       image_size=512, patch_size=16)  # SigLIP-base at 512 px; pixel shuffle 4 -> 64 tokens/image
 
 
 def build(name: str, folder: Path, layers: int, device: str):
@@ -43,9 +45,8 @@ def build(name: str, folder: Path, layers: int, device: str):
         write_llava(folder, text=dict(LLAMA2_7B, num_hidden_layers=layers), vision=SIGLIP_SO400M)
         return load_policy("openvla", checkpoint=str(folder), prompt=OPENVLA_PROMPT, append_token=None,
                            device=device, dtype="bfloat16" if device == "cuda" else "float32")
-    write_smolvla(folder, text=dict(SMOLVLM2_500M, num_hidden_layers=layers), vision=SIGLIP_SO400M | {"image_size": 512,
-                  "patch_size": 16, "num_hidden_layers": 12, "hidden_size": 768, "intermediate_size": 3072,
-                  "num_attention_heads": 12}, chunk_size=50, steps=10, device=device)
+    write_smolvla(folder, text=dict(SMOLVLM2_500M, num_hidden_layers=layers), vision=SMOLVLM2_VISION, scale_factor=4,
+                  chunk_size=50, steps=10, device=device)
     return load_policy("smolvla", checkpoint=str(folder))
 
 

@@ -101,3 +101,20 @@ class VLA(ABC):
     @property
     def needs_images(self) -> bool:
         return True
+
+
+class StackedLayers(VLA):
+    """Layer names over named stacks of decoder layers: `backbone.7` is `_stacks()["backbone"][7]`."""
+
+    def _stacks(self) -> dict[str, torch.nn.ModuleList]:
+        raise NotImplementedError
+
+    def layer_names(self) -> list[str]:
+        return [f"{stack}.{i}" for stack, layers in self._stacks().items() for i in range(len(layers))]
+
+    def layer_module(self, name: str) -> torch.nn.Module:
+        stack, _, index = name.partition(".")
+        layers = self._stacks().get(stack)
+        if layers is None or not index.isdigit() or int(index) >= len(layers):
+            raise KeyError(f"unknown layer {name!r}; {self.name} has {', '.join(self.layer_names())}")
+        return layers[int(index)]

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from vlactl.errors import UsageError
-from vlactl.models.base import POOLINGS, VLA, PolicyInput
+from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers
 
 # LIBERO's two cameras in vlactl's datasets -> LeRobot's LIBERO feature names (lerobot/envs/libero.py), in order.
 CAMERA_ORDER = ("image", "wrist_image")
@@ -37,7 +37,7 @@ def suffix_masks(pad: torch.Tensor) -> dict[str, torch.Tensor]:
     return {"prefix": pad, "last": prefix_masks(pad, 0, 0)["last"], "image": none, "text": none}
 
 
-class LeRobotFlowVLA(VLA):
+class LeRobotFlowVLA(StackedLayers):
     """A LeRobot flow-matching policy; subclasses name its class, stacks and embedders."""
 
     policy_target = ""  # "module:Class" of the LeRobot policy
@@ -81,10 +81,7 @@ class LeRobotFlowVLA(VLA):
         )
         return cls(policy, pre, post, cameras, replan_every)
 
-    # --- what a subclass names --------------------------------------------------------------------------------
-    def _stacks(self) -> dict[str, nn.ModuleList]:
-        raise NotImplementedError
-
+    # --- what a subclass names (and `_stacks`) -------------------------------------------------------------------
     def _flow(self) -> nn.Module:
         """The module with `embed_prefix`, `embed_suffix` and `sample_actions` (LeRobot's `policy.model`)."""
         return self.policy.model
@@ -98,16 +95,6 @@ class LeRobotFlowVLA(VLA):
         return 0
 
     # --- layers -------------------------------------------------------------------------------------------------
-    def layer_names(self) -> list[str]:
-        return [f"{stack}.{i}" for stack, layers in self._stacks().items() for i in range(len(layers))]
-
-    def layer_module(self, name: str) -> nn.Module:
-        stack, _, index = name.partition(".")
-        layers = self._stacks().get(stack)
-        if layers is None or not index.isdigit() or int(index) >= len(layers):
-            raise KeyError(f"unknown layer {name!r}; {self.name} has {', '.join(self.layer_names())}")
-        return layers[int(index)]
-
     def layer_width(self, name: str) -> int:
         return self.layer_module(name).post_attention_layernorm.weight.shape[0]
 

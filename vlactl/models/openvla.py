@@ -28,7 +28,7 @@ from PIL import Image
 from torch import nn
 
 from vlactl.errors import UsageError
-from vlactl.models.base import POOLINGS, VLA, PolicyInput
+from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers
 
 PROMPT = "In: What action should the robot take to {instruction}?\nOut:"
 EMPTY_TOKEN = 29871  # Llama-2's "▁": OpenVLA was trained with it before the action tokens and appends it if missing
@@ -71,7 +71,7 @@ def centre_crop(image: Image.Image, area: float = 0.9) -> Image.Image:
     return image.crop(box).resize((w, h), Image.BILINEAR)
 
 
-class OpenVLAAdapter(VLA):
+class OpenVLAAdapter(StackedLayers):
     name = "openvla"
     chunk_size = replan_every = 1
 
@@ -129,15 +129,8 @@ class OpenVLAAdapter(VLA):
     def _projector(self) -> nn.Module:
         return getattr(self.model, "projector", None) or self.model.multi_modal_projector
 
-    def layer_names(self) -> list[str]:
-        return [f"backbone.{i}" for i in range(len(self._decoder().layers))]
-
-    def layer_module(self, name: str) -> nn.Module:
-        stack, _, index = name.partition(".")
-        layers = self._decoder().layers
-        if stack != "backbone" or not index.isdigit() or int(index) >= len(layers):
-            raise KeyError(f"unknown layer {name!r}; openvla has {', '.join(self.layer_names())}")
-        return layers[int(index)]
+    def _stacks(self) -> dict[str, nn.ModuleList]:
+        return {"backbone": self._decoder().layers}
 
     def layer_width(self, name: str) -> int:
         return self.model.config.text_config.hidden_size

@@ -13,14 +13,14 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from vlactl.models.base import POOLINGS, VLA, PolicyInput
+from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers
 from vlactl.models.parts.config import VLAConfig
 from vlactl.models.parts.processing import Processor
 
 WEIGHTS_FILE, CONFIG_FILE = "model.safetensors", "config.json"
 
 
-class EmbeddedPolicy(nn.Module, VLA):
+class EmbeddedPolicy(nn.Module, StackedLayers):
     name = ""
     config_class = VLAConfig
     processor_class = Processor
@@ -34,19 +34,6 @@ class EmbeddedPolicy(nn.Module, VLA):
         self._masks: dict[str, dict[str, torch.Tensor]] = {}
 
     # --- layers ---------------------------------------------------------------------------------------------
-    def _stacks(self) -> dict[str, nn.ModuleList]:
-        raise NotImplementedError
-
-    def layer_names(self) -> list[str]:
-        return [f"{stack}.{i}" for stack, layers in self._stacks().items() for i in range(len(layers))]
-
-    def layer_module(self, name: str) -> nn.Module:
-        stack, _, index = name.partition(".")
-        layers = self._stacks().get(stack)
-        if layers is None or not index.isdigit() or int(index) >= len(layers):
-            raise KeyError(f"unknown layer {name!r}; {self.name} has {', '.join(self.layer_names())}")
-        return layers[int(index)]
-
     def token_mask(self, name: str, pooling: str) -> torch.Tensor:
         if pooling not in POOLINGS:
             raise KeyError(f"unknown pooling {pooling!r}; allowed: {', '.join(POOLINGS)}")
