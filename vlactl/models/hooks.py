@@ -18,8 +18,9 @@ Intervention = Callable[[str, torch.Tensor], "torch.Tensor | None"]
 
 def masked_mean(hidden: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """[B, T, d] pooled over the True tokens of a bool [B, T] mask -> [B, d]."""
-    m = mask.to(hidden.dtype)[..., None]
-    return (hidden * m).sum(1) / m.sum(1).clamp(min=1)
+    m = mask.to(hidden.dtype)
+    # a batched matrix product: no [B, T, d] temporary (the hooks run at every forward of every captured layer)
+    return torch.bmm(m[:, None, :], hidden)[:, 0] / m.sum(1, keepdim=True).clamp(min=1)
 
 
 @contextmanager
