@@ -96,7 +96,7 @@ class LeRobotFlowVLA(StackedLayers):
 
     # --- layers -------------------------------------------------------------------------------------------------
     def layer_width(self, name: str) -> int:
-        return self.layer_module(name).post_attention_layernorm.weight.shape[0]
+        return self.layer_module(name).self_attn.o_proj.out_features  # the residual width, whatever the norm
 
     def token_mask(self, name: str, pooling: str) -> torch.Tensor:
         if pooling not in POOLINGS:
