@@ -28,6 +28,13 @@ POOLINGS = ("prefix", "last", "image", "text")
 LayerHook = Callable[[torch.Tensor], "torch.Tensor | None"]
 
 
+def last_true(mask: torch.Tensor) -> torch.Tensor:
+    """Bool [B, T] with only the last True of each row of a bool [B, T] mask: the `last` read-out set."""
+    last = torch.zeros_like(mask)
+    last[torch.arange(mask.shape[0]), mask.shape[1] - 1 - mask.flip(1).int().argmax(1)] = True
+    return last
+
+
 @dataclass
 class PolicyInput:
     """One or more observations, in the dataset's conventions (see docs/formats.md).

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from vlactl.errors import UsageError
-from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers
+from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers, last_true
 
 # LIBERO's two cameras in vlactl's datasets -> LeRobot's LIBERO feature names (lerobot/envs/libero.py), in order.
 CAMERA_ORDER = ("image", "wrist_image")
@@ -26,15 +26,13 @@ def prefix_masks(pad: torch.Tensor, n_image: int, n_text: int) -> dict[str, torc
     positions = torch.arange(pad.shape[1], device=pad.device)
     image = pad & (positions < n_image)
     text = pad & (positions >= n_image) & (positions < n_image + n_text)
-    last = torch.zeros_like(pad)
-    last[torch.arange(pad.shape[0]), pad.shape[1] - 1 - pad.flip(1).int().argmax(1)] = True
-    return {"prefix": pad, "last": last, "image": image, "text": text}
+    return {"prefix": pad, "last": last_true(pad), "image": image, "text": text}
 
 
 def suffix_masks(pad: torch.Tensor) -> dict[str, torch.Tensor]:
     """The action expert's tokens: `prefix` means all of them (see vlactl.models.base)."""
     none = torch.zeros_like(pad)
-    return {"prefix": pad, "last": prefix_masks(pad, 0, 0)["last"], "image": none, "text": none}
+    return {"prefix": pad, "last": last_true(pad), "image": none, "text": none}
 
 
 class LeRobotFlowVLA(StackedLayers):

@@ -28,7 +28,7 @@ from PIL import Image
 from torch import nn
 
 from vlactl.errors import UsageError
-from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers
+from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers, last_true
 
 PROMPT = "In: What action should the robot take to {instruction}?\nOut:"
 EMPTY_TOKEN = 29871  # Llama-2's "▁": OpenVLA was trained with it before the action tokens and appends it if missing
@@ -158,9 +158,7 @@ class OpenVLAAdapter(StackedLayers):
         self.prompt_passes += 1
         positions = torch.arange(t, device=device)
         image = valid & (positions >= 1) & (positions < 1 + self._image_tokens)
-        last = torch.zeros_like(valid)
-        last[torch.arange(b), t - 1 - valid.flip(1).int().argmax(1)] = True
-        self._masks = {"prefix": valid, "last": last, "image": image, "text": valid & ~image}
+        self._masks = {"prefix": valid, "last": last_true(valid), "image": image, "text": valid & ~image}
         self._image_tokens = None
 
     # --- running ------------------------------------------------------------------------------------------------
