@@ -5,7 +5,7 @@ conventions, and the pipeline's own commands with `model.checkpoint=`."""
 import numpy as np
 import pytest
 import torch
-from real_model_fixtures import OPENVLA_PROMPT, write_llava, write_smolvla
+from real_model_fixtures import OPENVLA_PROMPT, pi05_standin, write_llava, write_pi05, write_smolvla
 from synthetic_demos import observation, write_synthetic_demos
 
 from vlactl.config import load_policy_stage_config
@@ -79,28 +79,87 @@ def test_smolvla_read_out_sets_follow_the_prefix_it_builds(smolvla_checkpoint):
     assert not (image & text).any()
 
 
-@pytest.mark.parametrize("layer", ["backbone.1", "expert.2"])
-def test_smolvla_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(smolvla_checkpoint, layer):
-    vla = load_smolvla(smolvla_checkpoint)
+def check_writing(vla, layer, min_change):
+    """Writing u at `layer` moves its pooled reading by exactly u and changes the actions; no hook outlives it."""
     u = torch.full((2, vla.layer_width(layer)), 0.5)
     before, after = reading(vla, layer, obs()), reading(vla, layer, obs(), lambda name, h: u)
     torch.testing.assert_close(after - before, u, atol=1e-4, rtol=0)
     plain = seeded_chunk(vla, obs())
     with intervene(vla, [layer], lambda name, h: 10 * u):
         steered = seeded_chunk(vla, obs())
-    assert (steered - plain).abs().max() > 1e-3
+    assert (steered - plain).abs().max() > min_change
     assert torch.equal(plain, seeded_chunk(vla, obs()))  # hooks are gone after the context
 
 
-def test_smolvla_collect_runs_through_the_pipeline_command(smolvla_checkpoint, tmp_path):
+def collect(model, checkpoint, tmp_path, layers):
+    """`vlactl collect model=<model> model.checkpoint=...` on 2 synthetic episodes (4 and 5 frames)."""
     demos = write_synthetic_demos(tmp_path / "demos", episodes=2, frames=4)
     cfg = load_policy_stage_config("collect", [
-        "model=smolvla", f"model.checkpoint={smolvla_checkpoint}", f"dataset={demos}", f"output_dir={tmp_path / 'a'}",
-        f"cache_dir={tmp_path / 'cache'}", "batch_size=4", "threads=1", "layers=[backbone.3,expert.0]",
+        f"model={model}", f"model.checkpoint={checkpoint}", f"dataset={demos}", f"output_dir={tmp_path / 'a'}",
+        f"cache_dir={tmp_path / 'cache'}", "batch_size=4", "threads=1", f"layers=[{','.join(layers)}]",
     ])
     store = ActivationStore(run_collect(cfg))
-    assert store.layers == ["backbone.3", "expert.0"] and store.n_frames == 2 * 4 + 1
-    assert torch.isfinite(store.load(["backbone.3"])).all()
+    assert store.layers == layers and store.n_frames == 4 + 5
+    assert all(torch.isfinite(store.load([layer])).all() for layer in layers)  # one at a time: widths differ
+
+
+@pytest.mark.parametrize("layer", ["backbone.1", "expert.2"])
+def test_smolvla_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(smolvla_checkpoint, layer):
+    check_writing(load_smolvla(smolvla_checkpoint), layer, min_change=1e-3)
+
+
+def test_smolvla_collect_runs_through_the_pipeline_command(smolvla_checkpoint, tmp_path):
+    collect("smolvla", smolvla_checkpoint, tmp_path, ["backbone.3", "expert.0"])
+
+
+# --- π0.5 (LeRobot's own class; a stand-in for its transformers branch, see pi05_standin) ---------------------------
+@pytest.fixture(scope="module")
+def pi05_checkpoint(tmp_path_factory):
+    return write_pi05(tmp_path_factory.mktemp("pi05"))
+
+
+@pytest.fixture
+def pi05(pi05_checkpoint):
+    with pi05_standin(pi05_checkpoint):  # transformers patched for this test only
+        yield load_policy("pi05", checkpoint=str(pi05_checkpoint))
+
+
+def test_pi05_loads_its_weights_names_both_stacks_and_predicts_lerobot_chunks(pi05, pi05_checkpoint):
+    assert pi05.layer_names() == ["backbone.0", "backbone.1", "expert.0", "expert.1"]
+    assert (pi05.chunk_size, pi05.replan_every) == (4, 2)
+    assert pi05.cameras == {"image": "observation.images.image", "wrist_image": "observation.images.image2"}
+    again = load_policy("pi05", checkpoint=str(pi05_checkpoint)).policy.state_dict()
+    # LeRobot prints a missing tied key and carries on; a fresh random init would differ, so the file was read
+    assert all(torch.equal(value, again[key]) for key, value in pi05.policy.state_dict().items())
+    chunk = seeded_chunk(pi05, obs())
+    assert chunk.shape == (2, 4, 7) and torch.isfinite(chunk).all()
+    assert torch.equal(chunk, seeded_chunk(pi05, obs()))
+
+
+def test_pi05_read_out_sets_follow_the_prefix_it_builds(pi05):
+    with capture(pi05, pi05.layer_names()) as got:
+        pi05.encode(obs())
+    assert {name: tuple(got[name][0].shape) for name in ("backbone.0", "expert.0")} == {
+        "backbone.0": (2, 32), "expert.0": (2, 16)}
+    image, text, prefix = (pi05.token_mask("backbone.0", p) for p in ("image", "text", "prefix"))
+    assert image.sum(1).tolist() == [32, 32] and image[:, :32].all()  # two cameras x (32 px / 8 px)^2 patches, first
+    # the text is the pipeline's whole prompt ("Task: ..., State: <bins>;\nAction: "): π0.5 has no state token
+    assert torch.equal(text.sum(1), pi05._batch(obs())["observation.language.attention_mask"].sum(1))
+    assert text[:, 32].all() and not (image & text).any() and torch.equal(prefix, image | text)
+    assert pi05.token_mask("expert.1", "prefix").sum(1).tolist() == [4, 4]  # the chunk's action tokens
+
+
+@pytest.mark.parametrize("layer", ["backbone.0", "expert.1"])
+def test_pi05_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(pi05, layer):
+    # Random adaptive-norm gates are ~0.006, so the expert barely reads the prefix: writing backbone.0 moves the
+    # actions by ~1e-4, far above float noise (a plain re-run is bit-identical). backbone.1, the last, could not move
+    # them at all: the expert attends to each layer's keys/values, made from that layer's input.
+    check_writing(pi05, layer, min_change=1e-5)
+
+
+def test_pi05_collect_runs_through_the_pipeline_command(pi05_checkpoint, tmp_path):
+    with pi05_standin(pi05_checkpoint):
+        collect("pi05", pi05_checkpoint, tmp_path, ["backbone.1", "expert.0"])
 
 
 # --- OpenVLA (tiny LLaVA stand-in) ----------------------------------------------------------------------------------
