@@ -53,7 +53,7 @@ PAPER_MODEL ?= hybrid
 PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
 PAPER_EPISODES ?= 10
 PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
-PAPER_METHODS ?= none prompt control alpha
+PAPER_METHODS ?= none prompt control alpha meandiff
 PAPER_ARGS ?=
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
 paper:
@@ -66,7 +66,7 @@ paper:
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
-	    episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS) || exit 1; done; done
+	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 
 test:
