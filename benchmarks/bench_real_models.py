@@ -1,5 +1,5 @@
-"""Observer + controller overhead on real-VLA-sized models with random weights: a policy step with every layer
-captured and the minimal controller acting at one layer, against a plain step.
+"""Observer + controller overhead on real-VLA-sized models with random weights: a policy step with the minimal
+controller acting at one layer (its readings logged), and the same with every layer captured, against a plain step.
 
     python benchmarks/bench_real_models.py [--layers N] [--repeats 5]
 
@@ -59,19 +59,21 @@ def main() -> None:
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     full = {"openvla-sized": 32, "smolvla-sized": 16}
     print(f"device: {device}" + ("" if device == "cuda" else " (no GPU: full width, fewer layers)"))
-    print(f"{'model':14s} {'layers':>6s} {'plain ms':>9s} {'observer+control ms':>20s} {'ratio':>6s}")
+    print(f"{'model':14s} {'layers':>6s} {'plain ms':>9s} {'control ms':>10s} {'ratio':>6s} "
+          f"{'all+control ms':>14s} {'ratio':>6s}")
     for name, depth in full.items():
         layers = args.layers or (depth if device == "cuda" else 2)
         with tempfile.TemporaryDirectory() as tmp:
             vla = build(name, Path(tmp), layers, device)
         obs = observation(1)
-        predict, _, steered = observed_steps(vla, obs, sync)
+        steps = observed_steps(vla, obs, sync)
         with torch.inference_mode():
-            plain_ms, _ = time_ms(predict, args.repeats)
-            steered_ms, _ = time_ms(steered, args.repeats)
-        print(f"{name:14s} {layers:6d} {plain_ms:9.1f} {steered_ms:20.1f} {steered_ms / plain_ms:6.3f}")
-    print(f"median wall time of {args.repeats} policy steps; observer: every layer captured; control: the minimal "
-          "controller at the second layer, its box beyond every reading so it acts at every forward")
+            plain, control, both = (time_ms(steps[key], args.repeats)[0]
+                                    for key in ("step", "step + control", "step + capture all + control"))
+        print(f"{name:14s} {layers:6d} {plain:9.1f} {control:10.1f} {control / plain:6.3f} {both:14.1f} "
+              f"{both / plain:6.3f}")
+    print(f"median wall time of {args.repeats} policy steps; control: the minimal controller at the second layer with "
+          "its readings logged, its box beyond every reading so it acts at every forward; all: every layer captured")
 
 
 if __name__ == "__main__":
