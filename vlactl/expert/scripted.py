@@ -37,6 +37,7 @@ class ExpertConfig:
     comfortable_reach: float = 0.72  # horizontal distance from the robot base beyond which grasps are penalised
     reach_weight: float = 0.5  # score per metre beyond it (clearance scores saturate at 0.05)
     rim_depth: float = 0.02  # grip site below a bowl's rim top; deeper and the inner finger meets the sloped wall
+    regrasp_rim_depth: float = 0.03  # after a grip that did not lift the bowl (e.g. pinched on a drawer's wall): deeper
 
 
 def _quat_mul(a, b):
@@ -110,7 +111,7 @@ class ScriptedExpert:
         if self.is_bowl:
             # Rim grasp with one finger inside the bowl: the finger axis must be radial. Four rim points are
             # possible (two yaws x two sides); take the one whose hand column is furthest from any obstacle.
-            z = top - self.cfg.rim_depth
+            z = top - (self.cfg.regrasp_rim_depth if self.failed else self.cfg.rim_depth)
             candidates = []
             for yaw in (0.0, np.pi / 2):
                 axis = np.array([-np.sin(yaw), np.cos(yaw), 0.0])  # finger axis: world y at yaw 0
