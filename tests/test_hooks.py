@@ -61,6 +61,23 @@ def test_intervention_changes_the_action_and_hooks_are_removed(name, layer):
     assert torch.equal(policy.predict_action_chunk(obs), plain)
 
 
+@pytest.mark.parametrize("name", list(MODELS))
+def test_steerable_layers_are_exactly_those_that_move_the_actions(name):
+    policy = tiny_policy(name)
+    obs = observation()
+
+    def chunk(layer=None):
+        policy.reset()
+        with intervene(policy, [layer] if layer else [], lambda _, pooled: torch.full_like(pooled, 5.0)):
+            return policy.predict_action_chunk(obs)
+
+    plain = chunk()
+    moved = [layer for layer in policy.layer_names() if not torch.equal(chunk(layer), plain)]
+    assert moved == policy.steerable_layers()
+    if name == "hybrid":  # the expert reads each backbone layer's keys/values: the last one's output feeds nothing
+        assert "backbone.1" not in moved
+
+
 def test_hooks_are_removed_on_error():
     policy = tiny_policy("hybrid")
     with pytest.raises(RuntimeError):

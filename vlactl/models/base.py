@@ -62,6 +62,10 @@ class VLA(ABC):
     def layer_names(self) -> list[str]:
         """Observable/controllable layers in forward order, e.g. ['backbone.0', ..., 'expert.0', ...]."""
 
+    def steerable_layers(self) -> list[str]:
+        """The layers whose output can move the actions (the ones a controller is placed on by default)."""
+        return self.layer_names()
+
     @abstractmethod
     def layer_module(self, name: str) -> torch.nn.Module:
         """The module whose output (a tensor, or a tuple whose first item is one) is that layer's residual stream."""
@@ -113,11 +117,21 @@ class VLA(ABC):
 class StackedLayers(VLA):
     """Layer names over named stacks of decoder layers: `backbone.7` is `_stacks()["backbone"][7]`."""
 
+    # A stack the action expert reads as per-layer keys/values (π0-style hybrids). Those come from each layer's input,
+    # so the last layer's output feeds nothing and writing it cannot move the actions.
+    kv_source: str | None = None
+
     def _stacks(self) -> dict[str, torch.nn.ModuleList]:
         raise NotImplementedError
 
     def layer_names(self) -> list[str]:
         return [f"{stack}.{i}" for stack, layers in self._stacks().items() for i in range(len(layers))]
+
+    def steerable_layers(self) -> list[str]:
+        names = self.layer_names()
+        if self.kv_source is None:
+            return names
+        return [n for n in names if n != f"{self.kv_source}.{len(self._stacks()[self.kv_source]) - 1}"]
 
     def layer_module(self, name: str) -> torch.nn.Module:
         stack, _, index = name.partition(".")

@@ -65,7 +65,7 @@ def run_plot_readings(cfg: DictConfig, load_policy=None) -> list[Path]:
         raise UsageError("pass model=<name or checkpoint> and probes=<probe run folder from `vlactl train-probes`>")
     run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
     table = pd.read_parquet(run / METRICS_NAME)
-    layer = cfg.layer or next(iter(best_layers(table[table["feature"] == cfg.feature])["layer"]), None)
+    layer = cfg.layer or next(iter(best_layers(table[table["feature"] == cfg.feature], steerable=True)["layer"]), None)
     path = run / "probes" / probe_filename(str(layer), cfg.feature)
     if layer is None or not path.is_file():
         raise UsageError(f"no {cfg.feature!r} probe for layer {layer} in {cfg.probes!r}")

@@ -65,7 +65,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
         feature = constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
-        layers = list(cfg.layers or best_layers(table[table["feature"] == feature])["layer"])
+        layers = list(cfg.layers or best_layers(table[table["feature"] == feature], steerable=True)["layer"])
         missing = [layer for layer in layers if not (run / "probes" / probe_filename(layer, feature)).is_file()]
         if missing or not layers:
             raise UsageError(f"no {feature!r} probe for layer {missing[0] if missing else '?'} in {cfg.probes!r}")

@@ -151,6 +151,8 @@ class ActivationStore:
         self.layers: list[str] = list(self.meta["layers"])
         self.widths: dict[str, int] = dict(self.meta["widths"])
         self.n_frames: int = self.meta["n_frames"]
+        # folders collected before the model said which layers can move its actions: all of them
+        self.steerable: list[str] = list(self.meta["info"].get("steerable_layers", self.layers))
 
     @property
     def labels(self) -> pd.DataFrame:

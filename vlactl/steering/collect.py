@@ -143,7 +143,7 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     if cfg.max_episodes is not None:
         keep &= np.isin(frames.episode, pd.unique(frames.episode)[: cfg.max_episodes])
     info = {"dataset": str(root), "dataset_fingerprint": frames.fingerprint, "every": cfg.every,
-            "max_episodes": cfg.max_episodes, "checkpoint": str(cfg.model)}
+            "max_episodes": cfg.max_episodes, "checkpoint": str(cfg.model), "steerable_layers": vla.steerable_layers()}
     with ActivationWriter(
         out, model=vla.name, layers=layers, widths={name: vla.layer_width(name) for name in layers},
         pooling=cfg.pooling, dtype=cfg.dtype, shard_size=cfg.shard_size, info=info,

@@ -146,6 +146,7 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
         for fi, feature in enumerate(features):
             row = {
                 "model": store.model, "pooling": store.pooling, "layer": layer, "layer_index": layers.index(layer),
+                "steerable": layer in store.steerable,
                 "feature": feature, "kind": kinds[fi], "n_train": len(train), "n_test": len(test),
                 "penalty": float(probes.lam[li, fi]), "cv_r2": float(probes.cv_r2[li, fi]),
                 "weight_norm": float(probes.weight[li, fi].norm()),
@@ -161,8 +162,11 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
     return rows
 
 
-def best_layers(table: pd.DataFrame) -> pd.DataFrame:
-    """One row per feature: the layer whose probe scores best on the test episodes."""
+def best_layers(table: pd.DataFrame, steerable: bool = False) -> pd.DataFrame:
+    """One row per feature: the layer whose probe scores best on the test episodes; with `steerable`, among the layers
+    whose output can move the actions (where to steer it)."""
+    if steerable and "steerable" in table:
+        table = table[table["steerable"]]
     def column(name):  # a run of only regression or only logistic probes lacks the other kind's metrics
         return table[name] if name in table else pd.Series(np.nan, index=table.index)
 

@@ -38,6 +38,7 @@ class HybridPolicy(EmbeddedPolicy):
     name = "hybrid"
     config_class = HybridConfig
     processor_class = HybridProcessor
+    kv_source = "backbone"
 
     def __init__(self, config: HybridConfig, processor: HybridProcessor):
         super().__init__(config, processor)
