@@ -49,6 +49,7 @@ policies: install
 # The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
 # Fig. 1, sweep and Fig. 2, readings and Fig. 3, rollouts (unconstrained, then every constraint x method) and
 # Figs. 4-8 with summary.md. Every stage resumes when re-run; any stage can be re-run alone from the one before.
+# method=none acts as the unconstrained policy does, so its runs judge the unconstrained run's episodes (judge_from=).
 PAPER_MODEL ?= hybrid
 PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
 PAPER_EPISODES ?= 10
@@ -65,8 +66,10 @@ paper:
 	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
+	  judge=$$([ $$m = none ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
-	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS) || exit 1; done; done
+	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts \
+	    $$judge $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 
 test:

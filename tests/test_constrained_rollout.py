@@ -51,6 +51,15 @@ def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
         rollout(tmp_path, f"method={method}")
         steps = pd.read_parquet(tmp_path / f"random_libero_spatial_gripper-open_{method}" / "steps.parquet")
         assert steps["reading_after"].isna().all() and steps["satisfied"].notna().sum() == 4
+    # method=none acts as the unconstrained policy: judging an unconstrained run gives the same tables
+    rollout(tmp_path, "constraint=none")
+    rollout(tmp_path, "method=none", f"judge_from={tmp_path / 'random_libero_spatial'}", "run_name=judged")
+    for table in ("episodes", "steps"):
+        judged = pd.read_parquet(tmp_path / "judged" / f"{table}.parquet").drop(columns="wall_s", errors="ignore")
+        ran = pd.read_parquet(tmp_path / f"random_libero_spatial_gripper-open_none" / f"{table}.parquet")
+        pd.testing.assert_frame_equal(judged, ran.drop(columns="wall_s", errors="ignore"))
+    with pytest.raises(UsageError, match="ran with seed=0, not 1"):
+        rollout(tmp_path, "method=none", f"judge_from={tmp_path / 'random_libero_spatial'}", "run_name=j2", "seed=1")
 
 
 @pytest.mark.parametrize("extra, message", [

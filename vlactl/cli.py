@@ -21,10 +21,21 @@ app = typer.Typer(
 OVERRIDES = typer.Argument(None, help="Hydra-style config overrides, e.g. suite=libero_object episodes_per_task=5")
 
 
+MULTIRUN = typer.Option(False, "-m", "--multirun", help="Hydra-style multirun: key=a,b runs once per value "
+                        "(cartesian product over every swept key), each run in its own folder.")
+
+
 def _overrides(extra: list[str] | None, **options) -> list[str]:
     """Typer options become Hydra overrides; explicit key=value arguments win because they come last."""
     out = [f"{key}={value}" for key, value in options.items() if value is not None]
     return out + list(extra or [])
+
+
+def _runs(overrides: list[str], multirun: bool, named_by: tuple[str, ...]) -> list[tuple[list[str], str]]:
+    """(overrides, tag) per run: one run as given, or with -m one per combination of the swept values."""
+    from vlactl.multirun import expand
+
+    return expand(overrides, named_by) if multirun else [(overrides, "")]
 
 
 @app.command()
@@ -72,14 +83,20 @@ def rollout(
         None, "--constraint", help="none, gripper=open|closed, height=low|high, speed=low|high."),
     method: Optional[str] = typer.Option(None, "--method", help="none, prompt, control, alpha or meandiff."),
     probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder, for control and alpha."),
+    multirun: bool = MULTIRUN,
 ):
     """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable)."""
-    from vlactl.rollout.runner import rollout_config, run_rollout
+    from vlactl.rollout.runner import default_run_name, rollout_config, run_rollout
 
-    run_rollout(rollout_config(_overrides(
+    given = _overrides(
         overrides, model=model, suite=suite, episodes_per_task=episodes_per_task, workers=workers, video=video,
         run_name=run_name, constraint=constraint, method=method, probes=probes,
-    )))
+    )
+    for items, tag in _runs(given, multirun, named_by=("model", "suite", "constraint", "method")):
+        cfg = rollout_config(items)
+        if tag and cfg.run_name is None:
+            cfg.run_name = f"{default_run_name(cfg)}_{tag}"
+        run_rollout(cfg)
 
 
 @app.command("train-policy")
@@ -124,14 +141,18 @@ def sweep(
     probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder (vlactl train-probes)."),
     feature: Optional[str] = typer.Option(None, "--feature", help="Whose probe direction to push along."),
     output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+    multirun: bool = MULTIRUN,
 ):
     """Perturbation sweep (Fig. 2): action change per layer and alpha, and each layer's norm."""
     from vlactl.config import load_policy_stage_config
-    from vlactl.steering.sweep import run_sweep
+    from vlactl.steering.sweep import default_output, run_sweep
 
-    run_sweep(load_policy_stage_config(
-        "sweep", _overrides(overrides, model=model, probes=probes, feature=feature, output_dir=output_dir)
-    ))
+    given = _overrides(overrides, model=model, probes=probes, feature=feature, output_dir=output_dir)
+    for items, tag in _runs(given, multirun, named_by=("model", "feature", "direction")):
+        cfg = load_policy_stage_config("sweep", items)
+        if tag and cfg.output_dir is None:
+            cfg.output_dir = f"{default_output(cfg)}_{tag}"
+        run_sweep(cfg)
 
 
 @app.command("train-probes")

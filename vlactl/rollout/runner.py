@@ -127,7 +127,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         replan_every=cfg.replan_every, video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
         load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
     )
-    _run_workers(spec, batches(todo, cfg.workers), out, keys, cfg.workers)
+    if cfg.judge_from:
+        judge_run(cfg, constraint, plan, todo, out)
+    else:
+        _run_workers(spec, batches(todo, cfg.workers), out, keys, cfg.workers)
 
     episodes, steps = parts.merge(out, keys)
     atomic_write_parquet(out / "episodes.parquet", episodes)
@@ -141,27 +144,64 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     return summary
 
 
+def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path) -> None:
+    """method=none under a constraint without re-running: the policy acts as it does unconstrained, so judge the
+    episodes of the unconstrained run `judge_from` (same model, suite, seeds and settings) against the constraint."""
+    import json
+
+    import pandas as pd
+
+    from vlactl.rollout.workers import judge_part
+
+    if constraint is None or cfg.method != "none":
+        raise UsageError(f"judge_from=... judges an unconstrained run under a constraint with method=none, not "
+                         f"constraint={cfg.constraint} method={cfg.method}")
+    source = stage_output(cfg.judge_from, "config.yaml", "rollout run", "vlactl rollout")
+    unconstrained = {**OmegaConf.to_container(cfg, resolve=True), "constraint": "none", "method": "none"}
+    clash = _differing_key(source / "config.yaml", unconstrained, [k for k in SAME_RUN_KEYS if k != "window"])
+    if clash:
+        key, before, now = clash
+        raise UsageError(f"judge_from={cfg.judge_from!r} ran with {key}={before!r}, not {now!r}")
+    missing = [key for key in todo if not parts.is_done(source, *key)]
+    if missing:
+        raise UsageError(f"judge_from={cfg.judge_from!r} lacks {len(missing)} of these episodes (task "
+                         f"{missing[0][0]}, episode {missing[0][1]} first); run it with the same tasks and episodes")
+    for task, k in todo:
+        base = parts.stem(source, task, k)
+        row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint.name, "method": "none"}
+        steps = judge_part(constraint, row, pd.read_parquet(base.with_suffix(".parquet")), plan.speed_threshold, {})
+        parts.write(out, row, steps)
+
+
+def default_run_name(cfg: DictConfig) -> str:
+    """<model>_<suite>[_<constraint>_<method>], e.g. `hybrid_libero_spatial_gripper-open_control`."""
+    default = f"{cfg.model}_{cfg.suite}" + ("" if cfg.constraint == "none" else f"_{cfg.constraint}_{cfg.method}")
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", default).strip("-.")
+
+
 def run_dir(cfg: DictConfig) -> Path:
     """`<output_root>/<run_name>` (created later); the default run name is the model and the suite, e.g.
     `scripted_libero_spatial`. Fails early if the root is not writable."""
-    default = f"{cfg.model}_{cfg.suite}" + ("" if cfg.constraint == "none" else f"_{cfg.constraint}_{cfg.method}")
-    name = cfg.run_name or re.sub(r"[^A-Za-z0-9._-]+", "-", default).strip("-.")
+    name = cfg.run_name or default_run_name(cfg)
     root = resolve_path(cfg.output_root)
     return ensure_writable_dir(root, requested=root, key="output_root") / name
 
 
+def _differing_key(saved: Path, new: dict, keys) -> tuple | None:
+    """(key, saved value, new value) of the first of `keys` on which a saved run config differs from `new`."""
+    old = OmegaConf.to_container(OmegaConf.load(saved))
+    return next(((key, old.get(key), new[key]) for key in keys if old.get(key) != new[key]), None)
+
+
 def _check_same_run(cfg: DictConfig, out: Path) -> None:
     saved = out / "config.yaml"
-    if not saved.exists():
-        return
-    old, new = OmegaConf.to_container(OmegaConf.load(saved)), OmegaConf.to_container(cfg, resolve=True)
-    for key in SAME_RUN_KEYS:
-        before, now = old.get(key), new[key]
-        if before != now:
-            raise UsageError(
-                f"{out} holds a run with {key}={before!r}, not {now!r}; resume it with the same settings "
-                f"or choose another run_name=..."
-            )
+    clash = saved.exists() and _differing_key(saved, OmegaConf.to_container(cfg, resolve=True), SAME_RUN_KEYS)
+    if clash:
+        key, before, now = clash
+        raise UsageError(
+            f"{out} holds a run with {key}={before!r}, not {now!r}; resume it with the same settings "
+            f"or choose another run_name=..."
+        )
 
 
 def batches(todo: list[tuple[int, int]], workers: int) -> list[Batch]:

@@ -100,9 +100,14 @@ def run_batch(batch: Batch) -> None:
         }
         steps = parts.steps_frame(batch.task, k, result)
         if constraint is not None:
-            steps, row["satisfaction"] = judge_steps(constraint, steps, float(result.states[0, 2]),
-                                                     spec.steering.speed_threshold)
-            readings = getattr(agent, "readings", {})
-            for column in READING_COLUMNS:
-                steps[column] = [readings.get(t, {}).get(column) for t in steps["t"]]
+            steps = judge_part(constraint, row, steps, spec.steering.speed_threshold, getattr(agent, "readings", {}))
         parts.write(out, row, steps)
+
+
+def judge_part(constraint, row: dict, steps, speed_threshold: float, readings: dict):
+    """An episode's step table judged against the constraint (its satisfaction goes into `row`), with the probe
+    readings of the steered predictions (`readings`: step -> READING_COLUMNS; none without steering)."""
+    steps, row["satisfaction"] = judge_steps(constraint, steps, float(steps["z"].iloc[0]), speed_threshold)
+    for column in READING_COLUMNS:
+        steps[column] = [readings.get(t, {}).get(column) for t in steps["t"]]
+    return steps

@@ -80,6 +80,12 @@ def _predict(vla, obs: PolicyInput, layer: str | None = None, u: torch.Tensor | 
     return chunk[:, 0].float().cpu().numpy()
 
 
+def default_output(cfg: DictConfig) -> Path:
+    """outputs/sweeps/<model>_<feature, or the direction kind>."""
+    name = cfg.feature if cfg.direction == "probe" else cfg.direction
+    return REPO_ROOT / "outputs" / "sweeps" / f"{Path(str(cfg.model)).name}_{name}"
+
+
 def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     from vlactl.models.registry import policy_loader
 
@@ -90,8 +96,7 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     units = directions(cfg, vla, layers)
     frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
     rows_all = spread(len(frames), cfg.frames)
-    name = cfg.feature if cfg.direction == "probe" else cfg.direction
-    out = resolve_path(cfg.output_dir) if cfg.output_dir else REPO_ROOT / "outputs" / "sweeps" / f"{Path(str(cfg.model)).name}_{name}"
+    out = resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg)
     ensure_writable_dir(out, cfg.output_dir)
 
     changes, norms = [], []
