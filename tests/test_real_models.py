@@ -91,6 +91,15 @@ def check_writing(vla, layer, min_change):
     assert torch.equal(plain, seeded_chunk(vla, obs()))  # hooks are gone after the context
 
 
+def check_last_backbone_layer_is_not_steerable(vla, last):
+    """The expert reads each backbone layer's keys/values, made from that layer's input: writing the last backbone
+    layer's output cannot move the actions, and the model does not offer it for steering."""
+    plain = seeded_chunk(vla, obs())
+    with intervene(vla, [last], lambda name, h: torch.full_like(h, 10.0)):
+        assert torch.equal(seeded_chunk(vla, obs()), plain)
+    assert last not in vla.steerable_layers() and len(vla.steerable_layers()) == len(vla.layer_names()) - 1
+
+
 def collect(model, checkpoint, tmp_path, layers):
     """`vlactl collect model=<model> model.checkpoint=...` on 2 synthetic episodes (4 and 5 frames)."""
     demos = write_synthetic_demos(tmp_path / "demos", episodes=2, frames=4)
@@ -106,6 +115,10 @@ def collect(model, checkpoint, tmp_path, layers):
 @pytest.mark.parametrize("layer", ["backbone.1", "expert.2"])
 def test_smolvla_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(smolvla_checkpoint, layer):
     check_writing(load_smolvla(smolvla_checkpoint), layer, min_change=1e-3)
+
+
+def test_smolvla_last_backbone_layer_is_not_steerable(smolvla_checkpoint):
+    check_last_backbone_layer_is_not_steerable(load_smolvla(smolvla_checkpoint), "backbone.3")
 
 
 def test_smolvla_collect_runs_through_the_pipeline_command(smolvla_checkpoint, tmp_path):
@@ -155,6 +168,10 @@ def test_pi05_writing_a_layer_moves_its_reading_by_u_and_changes_the_actions(pi0
     # actions by ~1e-4, far above float noise (a plain re-run is bit-identical). backbone.1, the last, could not move
     # them at all: the expert attends to each layer's keys/values, made from that layer's input.
     check_writing(pi05, layer, min_change=1e-5)
+
+
+def test_pi05_last_backbone_layer_is_not_steerable(pi05):
+    check_last_backbone_layer_is_not_steerable(pi05, "backbone.1")
 
 
 def test_pi05_collect_runs_through_the_pipeline_command(pi05_checkpoint, tmp_path):
