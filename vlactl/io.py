@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -81,3 +82,8 @@ def atomic_dir(path: Path):
         shutil.rmtree(old, ignore_errors=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def folder_name(text: str) -> str:
+    """`text` made safe as one folder name: runs of other characters become '-' (e.g. `gripper=open` -> `gripper-open`)."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "-", text).strip("-.")

@@ -9,12 +9,12 @@ alpha never resumes into one folder.
 from __future__ import annotations
 
 import itertools
-import re
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.errors import HydraException
 
 from vlactl.errors import UsageError
+from vlactl.io import folder_name
 
 
 def _quote_pieces(item: str) -> str:
@@ -24,10 +24,6 @@ def _quote_pieces(item: str) -> str:
     if "=" not in value or "'" in value or '"' in value:
         return item
     return f"{key}=" + ",".join(f"'{piece}'" for piece in value.split(","))
-
-
-def _safe(value: str) -> str:
-    return re.sub(r"[^A-Za-z0-9._-]+", "-", value).strip("-.")
 
 
 def expand(overrides: list[str], named_by: tuple[str, ...] = ()) -> list[tuple[list[str], str]]:
@@ -46,6 +42,6 @@ def expand(overrides: list[str], named_by: tuple[str, ...] = ()) -> list[tuple[l
     runs = []
     for combination in itertools.product(*axes):
         items = [f"{key}={value}" for key, value, _ in combination]
-        tag = "_".join(f"{key}-{_safe(value)}" for key, value, swept in combination if swept and key not in named_by)
+        tag = "_".join(f"{key}-{folder_name(value)}" for key, value, swept in combination if swept and key not in named_by)
         runs.append((items, tag))
     return runs

@@ -12,7 +12,6 @@ Finished episodes live in parts/ (see `parts`); re-running the same command skip
 from __future__ import annotations
 
 import multiprocessing as mp
-import re
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,7 @@ from tqdm import tqdm
 
 from vlactl.config import load_policy_stage_config, resolve_path, save_config, stage_output
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
-from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir
+from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
 from vlactl.rollout import parts
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
@@ -176,7 +175,7 @@ def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int,
 def default_run_name(cfg: DictConfig) -> str:
     """<model>_<suite>[_<constraint>_<method>], e.g. `hybrid_libero_spatial_gripper-open_control`."""
     default = f"{cfg.model}_{cfg.suite}" + ("" if cfg.constraint == "none" else f"_{cfg.constraint}_{cfg.method}")
-    return re.sub(r"[^A-Za-z0-9._-]+", "-", default).strip("-.")
+    return folder_name(default)
 
 
 def run_dir(cfg: DictConfig) -> Path:
