@@ -44,6 +44,13 @@ def observation(config):
     return PolicyInput(images, rng.normal(size=(1, 8)).astype(np.float32), [INSTRUCTION])
 
 
+OVERHEADS = {  # variant -> the workload it is compared with
+    "encode + capture all": "encode",
+    "step + control": "step",
+    "step + capture all + control": "step",
+}
+
+
 def observed_steps(policy, obs, sync=lambda: None) -> dict:
     """The workloads the overhead targets are about, each a callable to time:
     - `encode` / `encode + capture all`: the collection forward, plain and with every layer captured (issue: <= 1.10x);
@@ -87,6 +94,25 @@ def time_ms(fn, repeats: int) -> tuple[float, float]:
         wall.append(time.perf_counter() - start)
         cpu.append(time.process_time() - start_cpu)
     return 1000 * float(np.median(wall)), 1000 * float(np.median(cpu))
+
+
+def overheads(steps: dict, pairs: dict[str, str], repeats: int, clock=time.process_time) -> dict[str, float]:
+    """Median over rounds of time(variant) / time(base) for each variant -> base of `pairs`, every workload run once
+    per round in turn: on a shared VM the speed drifts by tens of percent within a minute, which timing each
+    workload in its own block turns into fake overheads; paired within a round, the drift cancels."""
+    names = sorted(set(pairs) | set(pairs.values()))
+    for name in names:
+        steps[name]()
+    ratios = {variant: [] for variant in pairs}
+    for r in range(repeats):
+        spent = {}
+        for name in names[r % len(names):] + names[:r % len(names)]:  # rotate who goes first
+            start = clock()
+            steps[name]()
+            spent[name] = clock() - start
+        for variant, base in pairs.items():
+            ratios[variant].append(spent[variant] / spent[base])
+    return {variant: float(np.median(r)) for variant, r in ratios.items()}
 
 
 def train_step_s(policy, batch_size: int, repeats: int = 3) -> float:
@@ -141,19 +167,20 @@ def main() -> None:
         two, _ = time_ms(steps["step"], args.repeats)
         torch.set_num_threads(1)
         one, one_cpu = time_ms(steps["step"], args.repeats)
-        cpu = {name: time_ms(fn, args.repeats)[1] for name, fn in steps.items() if name != "step"}
+        ratio = overheads(steps, OVERHEADS, args.repeats)
         step = train_step_s(policy, args.batch) if args.batch else float("nan")
         params = sum(p.numel() for p in policy.parameters()) / 1e6
 
-        def extra(name, base):
-            return f"{100 * (cpu[name] / base - 1):+.1f}%"
+        def extra(name):
+            return f"{100 * (ratio[name] - 1):+.1f}%"
 
         print(f"{policy.name:15s} {params:7.2f}M {mb:8.1f} {policy.chunk_size:>6d}/{per_step:<5d} "
               f"{one / per_step:10.1f} {one_cpu / per_step:6.1f} {two / per_step:10.1f} "
-              f"{extra('encode + capture all', cpu['encode']):>20s} {extra('step + control', one_cpu):>13s} "
-              f"{extra('step + capture all + control', one_cpu):>17s} {step:12.3f}")
+              f"{extra('encode + capture all'):>20s} {extra('step + control'):>13s} "
+              f"{extra('step + capture all + control'):>17s} {step:12.3f}")
     print("ms/step: one predict_action_chunk over the actions executed from it (replan_every), wall and (cpu) time, "
-          f"median of {args.repeats}; collect: extra CPU time of the collection forward (encode) with every layer "
+          f"median of {args.repeats}; overheads: median over {args.repeats} rounds (each workload once per round) of the "
+          f"CPU time ratio; collect: extra CPU time of the collection forward (encode) with every layer "
           f"captured (target <= +10%); step: control = the minimal controller with its readings at "
           f"{policy.layer_names()[1]}, active at every forward (target <= +5%); all+control: every layer captured at "
           f"every forward as well; train: CPU s per step, batch {args.batch}, 1 thread")

@@ -19,13 +19,14 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the tiny-checkpoint writers, at full width
 
-from bench_policy import observed_steps, time_ms  # noqa: E402
+from bench_policy import OVERHEADS, observed_steps, overheads, time_ms  # noqa: E402
 from real_model_fixtures import OPENVLA_PROMPT, write_llava, write_smolvla  # noqa: E402
 from synthetic_demos import observation  # noqa: E402
 
@@ -68,11 +69,14 @@ def main() -> None:
         obs = observation(1)
         steps = observed_steps(vla, obs, sync)
         with torch.inference_mode():
-            plain, control, both = (time_ms(steps[key], args.repeats)[0]
-                                    for key in ("step", "step + control", "step + capture all + control"))
-        print(f"{name:14s} {layers:6d} {plain:9.1f} {control:10.1f} {control / plain:6.3f} {both:14.1f} "
-              f"{both / plain:6.3f}")
-    print(f"median wall time of {args.repeats} policy steps; control: the minimal controller at the second layer with "
+            plain = time_ms(steps["step"], args.repeats)[0]
+            pairs = {k: v for k, v in OVERHEADS.items() if v == "step"}
+            ratio = overheads(steps, pairs, args.repeats, clock=time.perf_counter)
+        control, both = ratio["step + control"], ratio["step + capture all + control"]
+        print(f"{name:14s} {layers:6d} {plain:9.1f} {control * plain:10.1f} {control:6.3f} {both * plain:14.1f} "
+              f"{both:6.3f}")
+    print(f"median wall time of {args.repeats} policy steps; ratios: median of {args.repeats} paired rounds; "
+          "control: the minimal controller at the second layer with "
           "its readings logged, its box beyond every reading so it acts at every forward; all: every layer captured")
 
 
