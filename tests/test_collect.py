@@ -125,3 +125,19 @@ def test_refuses_to_mix_datasets(demos, tmp_path):
     with pytest.raises(UsageError, match="another dataset"):
         collect(other, out)
     assert pd.read_parquet(out / "labels.parquet")["episode"].tolist() == [0] * FRAMES
+
+
+def test_image_cache_holds_the_dataset_images_and_reads_any_frames(demos, tmp_path, monkeypatch):
+    import pyarrow.parquet as pq
+
+    from vlactl.data import frames as frames_module
+    from vlactl.data.frames import data_files, load_frames
+
+    monkeypatch.setattr(frames_module, "IMAGE_BATCH", 5)  # the cache is built over several batches
+    frames = load_frames(demos, ("image", "wrist_image"), tmp_path / "cache")
+    table = pq.read_table(data_files(demos)[0], columns=["observation.images.wrist_image", "index"])
+    rows = table["index"].to_numpy()
+    stored = frames_module._decode(table["observation.images.wrist_image"].to_pylist())
+    assert np.array_equal(np.asarray(frames.images[rows, 1]), stored)
+    index = np.array([30, 2, 3, 17, 4, 2])  # unsorted, repeated, with gaps beyond READ_GAP
+    assert np.array_equal(frames.images_at(index), np.asarray(frames.images[index]))

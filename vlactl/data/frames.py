@@ -34,6 +34,26 @@ class Frames:
     def __len__(self) -> int:
         return len(self.action)
 
+    def images_at(self, index: np.ndarray) -> np.ndarray:
+        """Images of the given frames, read from the cache file rather than through its mapping: pages read through
+        a mapping stay in this process's memory, so one pass over the dataset (vlactl collect) would end up holding
+        all of it. Runs of nearby frames are read in one go."""
+        index = np.asarray(index)
+        if not isinstance(self.images, np.memmap) or len(index) == 0:
+            return np.asarray(self.images[index])
+        order = np.argsort(index, kind="stable")
+        wanted = index[order]
+        shape, row = self.images.shape[1:], self.images[0].nbytes
+        parts = []
+        for run in np.split(wanted, np.flatnonzero(np.diff(wanted) > READ_GAP) + 1):
+            first = int(run[0])
+            span = np.fromfile(self.images.filename, np.uint8, (int(run[-1]) - first + 1) * row,
+                               offset=self.images.offset + first * row)
+            parts.append(span.reshape(-1, *shape)[run - first])
+        out = np.empty((len(index), *shape), np.uint8)
+        out[order] = np.concatenate(parts)
+        return out
+
     def action_chunks(self, index: np.ndarray, chunk: int) -> tuple[np.ndarray, np.ndarray]:
         """Actions t..t+chunk-1 of each frame's episode [B, chunk, 7], and where they ran past its end [B, chunk]."""
         ahead = index[:, None] + np.arange(chunk)
@@ -43,6 +63,10 @@ class Frames:
     def __post_init__(self):
         ends = np.flatnonzero(np.diff(self.episode, append=-1))  # frames are stored episode by episode
         self._episode_last = np.repeat(ends, np.diff(np.concatenate([[-1], ends])))
+
+
+IMAGE_BATCH = 256  # frames decoded at a time while building the image cache
+READ_GAP = 8  # frames further apart than this are read separately (vlactl collect every=4 still reads runs)
 
 
 def data_files(root: Path) -> list[Path]:
@@ -63,10 +87,11 @@ def fingerprint(root: Path) -> str:
 
 
 def _column(table, key: str) -> np.ndarray:
-    """A scalar column -> [N]; a fixed-size list column (state, action) -> [N, size]."""
+    """A scalar column of a table or record batch -> [N]; a fixed-size list column (state, action) -> [N, size]."""
     import pyarrow as pa
 
-    col = table[key].combine_chunks()
+    col = table[key]
+    col = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
     if pa.types.is_fixed_size_list(col.type):
         return col.flatten().to_numpy().reshape(len(col), col.type.list_size)
     return col.to_numpy()
@@ -105,18 +130,22 @@ def load_frames(root: Path, cameras: tuple[str, ...], cache_dir: Path, progress=
     if not image_file.exists():
         size = info["features"][IMAGE_PREFIX + cameras[0]]["shape"]
         with atomic_path(image_file) as tmp:
-            out = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(n, len(cameras), *size))
+            np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(n, len(cameras), *size)).flush()
             done = 0
+            # Batch by batch, each through a mapping dropped after it: the written pages then leave this process's
+            # memory, which stays flat however large the dataset (one mapping of it all would keep every page).
             for f in files:
-                table = pq.read_table(f, columns=[IMAGE_PREFIX + c for c in cameras] + ["index"])
-                rows = _column(table, "index")  # LeRobot's global frame index: the row in the cache
-                for k, cam in enumerate(cameras):
-                    out[rows, k] = _decode(table[IMAGE_PREFIX + cam].to_pylist())
-                done += len(rows)
-                if progress is not None:
-                    progress(done, n)
-            out.flush()
-            del out
+                read = [IMAGE_PREFIX + c for c in cameras] + ["index"]
+                for batch in pq.ParquetFile(f).iter_batches(batch_size=IMAGE_BATCH, columns=read):
+                    rows = _column(batch, "index")  # LeRobot's global frame index: the row in the cache
+                    out = np.load(tmp, mmap_mode="r+")
+                    for k, cam in enumerate(cameras):
+                        out[rows, k] = _decode(batch[IMAGE_PREFIX + cam].to_pylist())
+                    out.flush()
+                    del out
+                    done += len(rows)
+                    if progress is not None:
+                        progress(done, n)
     tasks = pq.read_table(root / "meta" / "tasks.parquet").to_pandas()
     names = [name for name, _ in sorted(zip(tasks.index, tasks["task_index"]), key=lambda pair: pair[1])]
     return Frames(

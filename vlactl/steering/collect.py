@@ -98,7 +98,7 @@ def _groups(episodes: np.ndarray, rows: np.ndarray, batch_size: int):
 
 def frame_batch(frames: Frames, index: np.ndarray) -> PolicyInput:
     """Dataset frames as one policy input (images from the cache, LIBERO state, instructions)."""
-    images = np.asarray(frames.images[index])
+    images = frames.images_at(index)
     return PolicyInput(images={cam: images[:, k] for k, cam in enumerate(CAMERAS)}, state=frames.state[index],
                        instruction=[frames.tasks[t] for t in frames.task[index]])
 
