@@ -132,8 +132,8 @@ def load_frames(root: Path, cameras: tuple[str, ...], cache_dir: Path, progress=
         with atomic_path(image_file) as tmp:
             np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(n, len(cameras), *size)).flush()
             done = 0
-            # Batch by batch, each through a mapping dropped after it: the written pages then leave this process's
-            # memory, which stays flat however large the dataset (one mapping of it all would keep every page).
+            # Batch by batch, each through a mapping dropped after it, so the whole decoded set is never held at once
+            # (the peak still grows with the dataset, by about a frame's images per frame: README, measured).
             for f in files:
                 read = [IMAGE_PREFIX + c for c in cameras] + ["index"]
                 for batch in pq.ParquetFile(f).iter_batches(batch_size=IMAGE_BATCH, columns=read):
