@@ -134,8 +134,8 @@ def load_frames(root: Path, cameras: tuple[str, ...], cache_dir: Path, progress=
             done = 0
             # Batch by batch, each through a mapping dropped after it, so the whole decoded set is never held at once
             # (the peak still grows with the dataset, by about a frame's images per frame: README, measured).
+            read = [IMAGE_PREFIX + c for c in cameras] + ["index"]
             for f in files:
-                read = [IMAGE_PREFIX + c for c in cameras] + ["index"]
                 for batch in pq.ParquetFile(f).iter_batches(batch_size=IMAGE_BATCH, columns=read):
                     rows = _column(batch, "index")  # LeRobot's global frame index: the row in the cache
                     out = np.load(tmp, mmap_mode="r+")
