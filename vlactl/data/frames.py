@@ -107,7 +107,7 @@ def read_columns(root: Path, names: list[str]) -> dict[str, np.ndarray]:
     """Non-image columns of every frame, in LeRobot's global frame order (the row order of the image cache)."""
     import pyarrow.parquet as pq
 
-    tables = [pq.read_table(f, columns=[*names, "index"]) for f in data_files(Path(root))]
+    tables = [pq.read_table(f, columns=[*names, "index"], use_threads=False) for f in data_files(Path(root))]
     order = np.argsort(np.concatenate([_column(t, "index") for t in tables]), kind="stable")
     return {name: np.concatenate([_column(t, name) for t in tables])[order] for name in names}
 
@@ -132,11 +132,13 @@ def load_frames(root: Path, cameras: tuple[str, ...], cache_dir: Path, progress=
         with atomic_path(image_file) as tmp:
             np.lib.format.open_memmap(tmp, mode="w+", dtype=np.uint8, shape=(n, len(cameras), *size)).flush()
             done = 0
-            # Batch by batch, each through a mapping dropped after it, so the whole decoded set is never held at once
-            # (the peak still grows with the dataset, by about a frame's images per frame: README, measured).
+            # Batch by batch, each through a mapping dropped after it, so the whole decoded set is never held at once.
+            # One reader thread: with Arrow's thread pool each new file left tens of MB behind in per-thread
+            # allocator caches, and the peak grew with the number of files (README, measured).
             read = [IMAGE_PREFIX + c for c in cameras] + ["index"]
             for f in files:
-                for batch in pq.ParquetFile(f).iter_batches(batch_size=IMAGE_BATCH, columns=read):
+                batches = pq.ParquetFile(f).iter_batches(batch_size=IMAGE_BATCH, columns=read, use_threads=False)
+                for batch in batches:
                     rows = _column(batch, "index")  # LeRobot's global frame index: the row in the cache
                     out = np.load(tmp, mmap_mode="r+")
                     for k, cam in enumerate(cameras):

@@ -24,6 +24,7 @@ from vlactl.data.lerobot_format import ACTION_KEY, ROBOT_STATE_KEY
 from vlactl.env.features import ACTION_FEATURES, STATE_FEATURES, robot_state_from_libero, speeds
 from vlactl.errors import UsageError, check_choice, check_positive
 from vlactl.io import ensure_writable_dir
+from vlactl.memory import fix_mmap_threshold, release_free_memory
 from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture
 from vlactl.steering.activations import DTYPES, ActivationWriter
@@ -132,6 +133,7 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
 
     _check(cfg)
     torch.set_num_threads(cfg.threads)
+    fix_mmap_threshold()
     vla = (load_policy or policy_loader(cfg))(str(cfg.model))
     layers = choose_layers(vla, cfg.layers)
     root = resolve_path(cfg.dataset)
@@ -162,5 +164,6 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
                     pieces.append(pooled_activations(vla, layers, cfg.pooling, frame_batch(frames, index)))
                     bar.update(len(index))
                 writer.append({name: np.concatenate([p[name] for p in pieces]) for name in layers}, labels.iloc[group])
+                release_free_memory()
     print(f"wrote {writer.n_frames} frames x {len(layers)} layers to {out}", file=sys.stderr)
     return out
