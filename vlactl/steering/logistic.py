@@ -85,12 +85,12 @@ def fit_logistic(
 def _weighted_gram(z: torch.Tensor, d: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
     """[Z 1]^T diag(d) [Z 1] of one layer, [p + 1, p + 1] in float64, from the rows that carry HESSIAN_MASS of the
     weight d. Once a probe is confident most rows weigh almost nothing, so later Hessians cost a fraction of a full
-    pass; the gradient stays exact, so Newton still converges to the exact optimum (HESSIAN_MASS: measured below)."""
+    pass; the gradient stays exact, so Newton still converges to the exact optimum (HESSIAN_MASS: docs/probes.md)."""
     order = torch.sort(d, descending=True)
     count = int(torch.searchsorted(order.values.cumsum(0), HESSIAN_MASS * order.values.sum())) + 1
     rows, root = order.indices[:count], order.values[:count].sqrt()
     a = torch.index_select(z, 0, rows, out=scratch[:count]).mul_(root[:, None])
     zz = (a.T @ a).double()
-    zd = (root @ a).double()[:, None]  # Z^T d
-    dd = d.sum(dtype=torch.float64).reshape(1, 1)
+    zd = (root @ a).double()[:, None]  # Z^T d over the kept rows
+    dd = d.sum(dtype=torch.float64).reshape(1, 1)  # every row: exact, and free
     return torch.cat([torch.cat([zz, zd], 1), torch.cat([zd.T, dd], 1)], 0)
