@@ -110,3 +110,11 @@ def test_default_layer_is_the_best_one_that_can_move_the_actions(probes, tmp_pat
     table.to_parquet(run / "metrics.parquet")
     summary = rollout(tmp_path, "method=control", f"probes={run}")
     assert "backbone.1" not in summary["steered_layers"] and len(summary["steered_layers"]) == 1
+
+
+def test_a_layer_group_steers_each_of_its_steerable_layers(probes, tmp_path):
+    table = pd.read_parquet(probes / "metrics.parquet")
+    expert = sorted(set(table.loc[table["steerable"] & table["layer"].str.startswith("expert."), "layer"]))
+    assert expert
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", "layers=expert")
+    assert sorted(summary["steered_layers"]) == expert

@@ -48,3 +48,16 @@ def test_dataset_has_documented_frames(demo_run):
     actions = np.stack([ds[i][ACTION_KEY].numpy() for i in range(0, ds.num_frames, 5)])
     assert np.all(np.abs(actions) <= 1.0)
     assert (actions[:, 6] > 0).any() and (actions[:, 6] < 0).any()  # the gripper opens and closes
+
+
+def test_recovery_demonstration_starts_after_a_missed_grasp(tmp_path):
+    out = tmp_path / "recovery"
+    summary = run_demos(load_config("demos", ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}",
+                                              "episodes_per_task=0", "recovery_episodes_per_task=1"]))
+    assert summary["attempted"] == 0 and summary["recovery"]["succeeded"] == 1
+    with np.load(tmp_path / "recovery.staging" / "task00" / "rec0000.npz") as ep:
+        aperture, grip = ep["robot_state"][:, 6], ep["action"][:, 6]
+    assert aperture[0] < 0.08  # recorded from the lift of an empty, closed gripper
+    opened = np.flatnonzero(grip < 0)
+    assert opened.size and opened[0] < 10  # it opens at once ...
+    assert (grip[opened[0]:] > 0).any()  # ... and grasps again

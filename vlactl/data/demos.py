@@ -23,14 +23,15 @@ from vlactl.errors import UsageError, check_choice, check_non_negative, check_po
 from vlactl.io import atomic_path, atomic_write_json, ensure_writable_dir
 
 SUMMARY_NAME = "vlactl_demos.json"
+RECOVERY_SEED = 100_000  # recovery episodes' seeds start here, apart from the normal episodes'
 
 
-def _episode_stem(staging: Path, task: int, k: int) -> Path:
-    return staging / f"task{task:02d}" / f"ep{k:04d}"
+def _episode_stem(staging: Path, task: int, k: int, recovery: bool = False) -> Path:
+    return staging / f"task{task:02d}" / f"{'rec' if recovery else 'ep'}{k:04d}"
 
 
-def _done(staging: Path, task: int, k: int) -> bool:
-    stem = _episode_stem(staging, task, k)
+def _done(staging: Path, task: int, k: int, recovery: bool) -> bool:
+    stem = _episode_stem(staging, task, k, recovery)
     return stem.with_suffix(".npz").exists() or stem.with_suffix(".json").exists()
 
 
@@ -39,6 +40,7 @@ def run_demos(cfg: DictConfig) -> dict:
 
     check_choice("suite", cfg.suite, SUITES)
     check_non_negative("episodes_per_task", cfg.episodes_per_task)
+    check_non_negative("recovery_episodes_per_task", cfg.recovery_episodes_per_task)
     check_positive("workers", cfg.workers)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     out = resolve_path(cfg.output_dir)
@@ -46,11 +48,13 @@ def run_demos(cfg: DictConfig) -> dict:
     staging = ensure_writable_dir(out.with_name(out.name + ".staging"))
     save_config(cfg, staging)
 
-    jobs = [(t, k) for t in tasks for k in range(cfg.episodes_per_task) if not _done(staging, t, k)]
-    total = len(tasks) * cfg.episodes_per_task
+    kinds = [(False, cfg.episodes_per_task, cfg.seed), (True, cfg.recovery_episodes_per_task, cfg.seed + RECOVERY_SEED)]
+    everything = [(t, k, rec, seed + k) for rec, n, seed in kinds for t in tasks for k in range(n)]
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-    work = [(cfg.suite, t, k, cfg.seed + k, env_cfg, str(staging)) for t, k in jobs]
-    bar = tqdm(total=total, initial=total - len(jobs), desc=f"demos {cfg.suite}", unit="ep")
+    work = [(cfg.suite, t, k, rec, seed, env_cfg, str(staging))
+            for t, k, rec, seed in everything if not _done(staging, t, k, rec)]
+    total = len(everything)
+    bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
         ctx = mp.get_context("spawn")
         with ctx.Pool(min(cfg.workers, len(work)), initializer=_worker_init) as pool:
@@ -60,11 +64,12 @@ def run_demos(cfg: DictConfig) -> dict:
     bar.close()
 
     summary = summarise(staging, cfg.suite, tasks, cfg.episodes_per_task)
+    if cfg.recovery_episodes_per_task:
+        summary["recovery"] = summarise(staging, cfg.suite, tasks, cfg.recovery_episodes_per_task, recovery=True)
     episodes = sorted(
-        _episode_stem(staging, t, k).with_suffix(".npz")
-        for t in tasks
-        for k in range(cfg.episodes_per_task)
-        if _episode_stem(staging, t, k).with_suffix(".npz").exists()
+        stem.with_suffix(".npz")
+        for t, k, rec, _ in everything
+        if (stem := _episode_stem(staging, t, k, rec)).with_suffix(".npz").exists()
     )
     from vlactl.data.lerobot_format import write_dataset
 
@@ -76,11 +81,11 @@ def run_demos(cfg: DictConfig) -> dict:
     return summary
 
 
-def summarise(staging: Path, suite: str, tasks: list[int], per_task: int) -> dict:
+def summarise(staging: Path, suite: str, tasks: list[int], per_task: int, recovery: bool = False) -> dict:
     rows = {}
     for t in tasks:
-        ok = sum(_episode_stem(staging, t, k).with_suffix(".npz").exists() for k in range(per_task))
-        failed = sum(_episode_stem(staging, t, k).with_suffix(".json").exists() for k in range(per_task))
+        ok = sum(_episode_stem(staging, t, k, recovery).with_suffix(".npz").exists() for k in range(per_task))
+        failed = sum(_episode_stem(staging, t, k, recovery).with_suffix(".json").exists() for k in range(per_task))
         rows[t] = {"attempted": ok + failed, "succeeded": ok, "failed": failed,
                    "success_rate": ok / (ok + failed) if ok + failed else None}
     attempted = sum(r["attempted"] for r in rows.values())
@@ -94,6 +99,9 @@ def _print_summary(summary: dict) -> None:
           f"({summary['failed']} failures, not kept)")
     for t, row in summary["per_task"].items():
         print(f"  task {t}: {row['succeeded']}/{row['attempted']}")
+    if "recovery" in summary:
+        rec = summary["recovery"]
+        print(f"recovery demonstrations: {rec['succeeded']}/{rec['attempted']} succeeded")
 
 
 def _load(path: Path) -> dict:
@@ -128,30 +136,36 @@ def _env(suite: str, task: int, env_cfg: dict):
 
 def _generate_episode(job) -> bool:
     from vlactl.env.features import speeds
-    from vlactl.expert.scripted import ScriptedExpert
+    from vlactl.expert.scripted import ExpertConfig, ScriptedExpert
 
-    suite, task, k, seed, env_cfg, staging = job
+    suite, task, k, recovery, seed, env_cfg, staging = job
     env = _env(suite, task, env_cfg)
     init_state = k % env.n_init_states
-    expert = ScriptedExpert()
+    # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
+    # gripper: the states a policy reaches after closing too high, and the way out (open, descend, grasp again).
+    expert = ScriptedExpert(ExpertConfig(miss_first_grasp=recovery))
     start = time.time()
     obs = env.reset(init_state, seed=seed, render=True)
     expert.reset(env, obs)
     frames = {"image": [], "wrist_image": [], "libero_state": [], "robot_state": [], "action": []}
-    positions = [obs.state[:3]]
+    positions = []
     success = False
+    recording = not recovery
     for _ in range(env.max_steps):
         action = expert.act(obs)
-        frames["image"].append(obs.images["image"])
-        frames["wrist_image"].append(obs.images["wrist_image"])
-        frames["libero_state"].append(obs.libero_state)
-        frames["robot_state"].append(obs.state)
-        frames["action"].append(action)
+        recording = recording or expert.phase == "lift"
+        if recording:
+            frames["image"].append(obs.images["image"])
+            frames["wrist_image"].append(obs.images["wrist_image"])
+            frames["libero_state"].append(obs.libero_state)
+            frames["robot_state"].append(obs.state)
+            frames["action"].append(action)
+            positions.append(obs.state[:3])
         obs, success = env.step(action, render=True)
-        positions.append(obs.state[:3])
         if success:
             break
-    stem = _episode_stem(Path(staging), task, k)
+    positions.append(obs.state[:3])
+    stem = _episode_stem(Path(staging), task, k, recovery)
     stem.parent.mkdir(parents=True, exist_ok=True)
     meta = {"task_id": task, "init_state": init_state, "seed": seed, "steps": len(frames["action"]),
             "wall_s": round(time.time() - start, 2)}

@@ -28,6 +28,8 @@ class ExpertConfig:
     travel_clearance: float = 0.12  # above the top of the highest relevant object
     max_travel_z: float = 1.2  # the Panda cannot reach much higher over the far side of the table
     tolerance: float = 0.01
+    final_approach: float = 0.03  # the last metres of the descent are slow: a policy that closes a step early or
+    final_speed: float = 0.3  # late then lands ~4 mm off, not ~12 mm (action units; 1.0 moves the hand ~12 mm a step)
     close_steps: int = 10
     preclose_steps: int = 3  # gripper commands of +1 before a rim grasp: the fingers end about half open
     open_steps: int = 8
@@ -38,6 +40,9 @@ class ExpertConfig:
     reach_weight: float = 0.5  # score per metre beyond it (clearance scores saturate at 0.05)
     rim_depth: float = 0.02  # grip site below a bowl's rim top; deeper and the inner finger meets the sloped wall
     regrasp_rim_depth: float = 0.03  # after a grip that did not lift the bowl (e.g. pinched on a drawer's wall): deeper
+    empty_aperture: float = 0.08  # fingers closed further than this while lifting hold nothing: re-grasp at once
+    miss_first_grasp: bool = False  # recovery demonstrations: the first grasp closes above the rim, on nothing
+    miss_height: float = 0.03  # that grasp's height above the rim top: clear of it, so the bowl is not moved
 
 
 def _quat_mul(a, b):
@@ -91,6 +96,7 @@ class ScriptedExpert:
         self.base = np.array(sim.data.body_xpos[sim.model.body_name2id("robot0_base")])
         self.obstacles = obstacle_boxes(sim.model, sim.data, [object_body(sim.model, self.target)])
         self.phase, self.timer, self.regrasps, self.failed = "approach", 0, 0, []
+        self.missing = self.cfg.miss_first_grasp
         self.integral = np.zeros(3)
         self._plan_grasp(obs)
 
@@ -112,6 +118,8 @@ class ScriptedExpert:
             # Rim grasp with one finger inside the bowl: the finger axis must be radial. Four rim points are
             # possible (two yaws x two sides); take the one whose hand column is furthest from any obstacle.
             z = top - (self.cfg.regrasp_rim_depth if self.failed else self.cfg.rim_depth)
+            if self.missing:
+                z = top + self.cfg.miss_height
             candidates = []
             for yaw in (0.0, np.pi / 2):
                 axis = np.array([-np.sin(yaw), np.cos(yaw), 0.0])  # finger axis: world y at yaw 0
@@ -197,15 +205,20 @@ class ScriptedExpert:
             above = np.array([*self.grasp_point[:2], hover])
             if eef[2] < hover - 0.03 and remaining > 0.02:
                 above = np.array([eef[0], eef[1], hover])  # rise first, then move across
-            if (remaining < 0.01 and eef[2] >= hover - 0.03) or self.timer > 60:
+            # Already over the grasp point (a re-grasp after a miss): straight down.
+            if (remaining < 0.01 and (eef[2] >= hover - 0.03 or eef[2] > self.grasp_point[2])) or self.timer > 60:
                 self._go("descend")
             return self._servo(eef, above, OPEN, self.grasp_yaw)
         if self.phase == "descend":
-            if close(self.grasp_point) or self.timer > 40:
+            remaining = np.linalg.norm(self.grasp_point - eef)
+            if remaining < cfg.tolerance or self.timer > 40:
                 self._go("close")
             # Bowls: close the fingers part-way, then hold (action 0), so they fit between the rim and nearby walls.
             grip = (CLOSE if self.timer <= cfg.preclose_steps else 0.0) if self.is_bowl else OPEN
-            return self._servo(eef, self.grasp_point, grip, self.grasp_yaw)
+            action = self._servo(eef, self.grasp_point, grip, self.grasp_yaw)
+            if remaining < cfg.final_approach:
+                action[:3] *= min(1.0, cfg.final_speed / max(np.linalg.norm(action[:3]), 1e-9))
+            return action
         if self.phase == "close":
             if self.timer >= cfg.close_steps:
                 self.lift_start_z = eef[2]
@@ -216,9 +229,14 @@ class ScriptedExpert:
             # Held if the object rises with the hand; relative, because over the tall cabinet the arm is near the top
             # of its reach and cannot lift far.
             hand_rise, obj_rise = eef[2] - self.lift_start_z, obj_pos[2] - self.obj_start_z
+            empty = self.timer > 2 and obs.state[6] < cfg.empty_aperture
             if obj_rise > cfg.lift_check or (hand_rise > 0.025 and obj_rise > 0.7 * hand_rise):
                 self._go("carry")
-            elif self.timer > 25:
+            elif self.missing and (empty or self.timer > 25):  # the deliberate miss: same grasp, now done right
+                self.missing = False
+                self._plan_grasp(obs)
+                self._go("regrasp_open")
+            elif empty or self.timer > 25:
                 if self.regrasps < cfg.max_regrasps:
                     self.regrasps += 1
                     self.failed.append(self.candidate)
@@ -228,7 +246,8 @@ class ScriptedExpert:
                     self._go("carry")
             return self._servo(eef, target, CLOSE, self.grasp_yaw)
         if self.phase == "regrasp_open":
-            if self.timer >= cfg.open_steps:
+            # Fully open before the next descent: its part-way pre-close is timed from open fingers.
+            if self.timer >= cfg.open_steps and (obs.state[6] > 0.9 or self.timer > 20):
                 self._go("approach")
             return self._servo(eef, eef, OPEN, self.grasp_yaw)
         if self.phase == "carry":

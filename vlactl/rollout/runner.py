@@ -47,7 +47,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
 
     from vlactl.data.frames import read_columns
     from vlactl.steering.probe_file import load_probe
-    from vlactl.steering.train_probes import METRICS_NAME, best_layers, probe_filename
+    from vlactl.steering.train_probes import METRICS_NAME, probe_filename
 
     check_choice("method", cfg.method, METHODS)
     if cfg.method != "none" and constraint is None:
@@ -64,7 +64,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
         feature = constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
-        layers = list(cfg.layers or best_layers(table[table["feature"] == feature], steerable=True)["layer"])
+        layers = _steered_layers(cfg.layers, table[table["feature"] == feature])
         missing = [layer for layer in layers if not (run / "probes" / probe_filename(layer, feature)).is_file()]
         if missing or not layers:
             raise UsageError(f"no {feature!r} probe for layer {missing[0] if missing else '?'} in {cfg.probes!r}")
@@ -73,6 +73,20 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=float(threshold or 0.0))
+
+
+def _steered_layers(chosen, table: pd.DataFrame) -> list[str]:
+    """`layers=`: a list of layer names; a group (`backbone`, `expert`: its every steerable layer that has a probe);
+    or null: the best steerable layer."""
+    from vlactl.steering.train_probes import best_layers
+
+    if chosen is None:
+        return list(best_layers(table, steerable=True)["layer"])
+    if isinstance(chosen, str):
+        steerable = table[table["steerable"]] if "steerable" in table else table
+        group = [layer for layer in dict.fromkeys(steerable["layer"]) if layer.split(".")[0] == chosen]
+        return group or [chosen]
+    return list(chosen)
 
 
 def mean_difference_directions(cfg: DictConfig, constraint, layers: list[str]) -> dict:
