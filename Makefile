@@ -35,22 +35,26 @@ demo: install
 	  output_root=outputs/demo run_name=hybrid_libero_spatial
 
 # Rebuild the shipped embedded models from scratch: the full libero_spatial demo set, then each model trained with
-# its own config (conf/model/<name>.yaml), its checkpoint copied into data/policies/. The autoregressive model then
-# trains a second cosine cycle from its own checkpoint (CONTINUE_autoregressive): one 8,000-step cycle left its loss
-# still falling. Every step resumes where it stopped when re-run.
+# its own config (conf/model/<name>.yaml), then, for a model with CONTINUE_<name>, a second run from that checkpoint,
+# and the last checkpoint copied into data/policies/. The autoregressive model trains a second cosine cycle (one
+# 8,000-step cycle left its loss still falling); the hybrid is fine-tuned on recovery demonstrations (docs/models.md).
+# Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
-CONTINUE_autoregressive ?= steps=7000 lr=2e-4 warmup_steps=200
+CONTINUE_autoregressive ?= dataset=data/demos/libero_spatial steps=7000 lr=2e-4 warmup_steps=200
+CONTINUE_hybrid ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
+define train_policy
+	$(BIN)/vlactl train-policy model=$(1) dataset=data/demos/libero_spatial output_dir=outputs/policies/$(1)
+	$(if $(CONTINUE_$(1)),$(BIN)/vlactl train-policy model=$(1) init_from=outputs/policies/$(1)/checkpoint \
+	  $(CONTINUE_$(1)) output_dir=outputs/policies/$(1)-continued)
+	rm -rf data/policies/$(1).new && cp -r outputs/policies/$(1)$(if $(CONTINUE_$(1)),-continued)/checkpoint \
+	  data/policies/$(1).new && rm -rf data/policies/$(1) && mv data/policies/$(1).new data/policies/$(1)
+
+endef
 policies: install
 	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=50 workers=2
-	for m in $(POLICIES); do \
-	  run=outputs/policies/$$m; \
-	  $(BIN)/vlactl train-policy model=$$m dataset=data/demos/libero_spatial output_dir=$$run || exit 1; \
-	  case $$m in autoregressive) \
-	    $(BIN)/vlactl train-policy model=$$m dataset=data/demos/libero_spatial init_from=$$run/checkpoint \
-	      $(CONTINUE_autoregressive) output_dir=$$run-continued || exit 1; run=$$run-continued;; esac; \
-	  rm -rf data/policies/$$m.new && cp -r $$run/checkpoint data/policies/$$m.new && \
-	  rm -rf data/policies/$$m && mv data/policies/$$m.new data/policies/$$m; \
-	done
+	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=10 recovery_episodes_per_task=25 workers=2 \
+	  output_dir=data/demos/libero_spatial_recovery
+	$(foreach m,$(POLICIES),$(call train_policy,$(m)))
 
 # The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
 # Fig. 1, sweep and Fig. 2, readings and Fig. 3, rollouts (unconstrained, then every constraint x method) and
@@ -62,20 +66,26 @@ PAPER_EPISODES ?= 10
 PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
 PAPER_METHODS ?= none prompt control alpha meandiff
 PAPER_ARGS ?=
+# The controller steers the gripper with probes of its own: strongly regularised, at every action-expert layer
+# (docs/steering.md: the observability probes' minimum-norm push moves no action).
+PAPER_STEER_PROBES ?= features=[gripper_action] logistic_l2=1e4
+PAPER_GRIPPER_CONTROL ?= probes=$(PAPER_DIR)/probes_steer layers=expert logit_margin=5
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
 paper:
 	$(BIN)/vlactl collect model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) every=4 output_dir=$(PAPER_DIR)/activations
 	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes
 	$(BIN)/vlactl plot probes run_dir=$(PAPER_DIR)/probes
+	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes_steer $(PAPER_STEER_PROBES)
 	$(BIN)/vlactl sweep model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes output_dir=$(PAPER_DIR)/sweep
 	$(BIN)/vlactl plot sweep run_dir=$(PAPER_DIR)/sweep
 	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
 	  judge=$$([ $$m = none ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
+	  steer=$$(case $$c/$$m in gripper=*/control) echo '$(PAPER_GRIPPER_CONTROL)';; esac); \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
 	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts \
-	    $$judge $(PAPER_ARGS) || exit 1; done; done
+	    $$judge $$steer $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 
 test:

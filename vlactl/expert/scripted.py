@@ -40,7 +40,8 @@ class ExpertConfig:
     reach_weight: float = 0.5  # score per metre beyond it (clearance scores saturate at 0.05)
     rim_depth: float = 0.02  # grip site below a bowl's rim top; deeper and the inner finger meets the sloped wall
     regrasp_rim_depth: float = 0.03  # after a grip that did not lift the bowl (e.g. pinched on a drawer's wall): deeper
-    empty_aperture: float = 0.08  # fingers closed further than this while lifting hold nothing: re-grasp at once
+    empty_aperture: float = 0.04  # fingers closed further than this while lifting hold nothing (a bowl on the
+                                  # ramekin is held at 0.05, one on the table at 0.1): re-grasp at once
     miss_first_grasp: bool = False  # recovery demonstrations: the first grasp closes above the rim, on nothing
     miss_height: float = 0.03  # that grasp's height above the rim top: clear of it, so the bowl is not moved
 
