@@ -141,3 +141,13 @@ def test_image_cache_holds_the_dataset_images_and_reads_any_frames(demos, tmp_pa
     assert np.array_equal(np.asarray(frames.images[rows, 1]), stored)
     index = np.array([30, 2, 3, 17, 4, 2])  # unsorted, repeated, with gaps beyond READ_GAP
     assert np.array_equal(frames.images_at(index), np.asarray(frames.images[index]))
+
+
+def test_resume_refuses_activations_of_other_weights(demos, tmp_path):
+    checkpoint = tmp_path / "policy"
+    checkpoint.mkdir()
+    tiny_policy("hybrid", seed=0).save_pretrained(checkpoint)
+    collect(demos, tmp_path / "acts", f"model={checkpoint}", "max_episodes=1")
+    tiny_policy("hybrid", seed=1).save_pretrained(checkpoint)  # retrained under the same path
+    with pytest.raises(UsageError, match="other weights"):
+        collect(demos, tmp_path / "acts", f"model={checkpoint}")

@@ -100,6 +100,18 @@ def resolve_checkpoint(name_or_path: str) -> Path:
     )
 
 
+def weights_fingerprint(name_or_path: str) -> str | None:
+    """Hash of the weights a model name or checkpoint path stands for (None for real models and `random`): a resumed
+    stage refuses outputs made by other weights, which a retrained checkpoint of the same name would be."""
+    import hashlib
+
+    from vlactl.models.parts.policy import WEIGHTS_FILE
+
+    if name_or_path in ADAPTERS or name_or_path == RANDOM:
+        return None
+    return hashlib.sha256((resolve_checkpoint(name_or_path) / WEIGHTS_FILE).read_bytes()).hexdigest()[:16]
+
+
 TINY = dict(
     vision_channels=(8, 8, 8), width=32, layers=2, heads=2, kv_heads=1, head_dim=16, mlp_width=64, max_text_tokens=12,
     chunk_size=4, replan_every=2,

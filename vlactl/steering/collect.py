@@ -129,7 +129,7 @@ def default_output(cfg: DictConfig) -> Path:
 
 def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     """Collect (or resume collecting) and return the activation folder. `load_policy` replaces the registry."""
-    from vlactl.models.registry import policy_loader
+    from vlactl.models.registry import policy_loader, weights_fingerprint
 
     _check(cfg)
     torch.set_num_threads(cfg.threads)
@@ -145,13 +145,17 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     if cfg.max_episodes is not None:
         keep &= np.isin(frames.episode, pd.unique(frames.episode)[: cfg.max_episodes])
     info = {"dataset": str(root), "dataset_fingerprint": frames.fingerprint, "every": cfg.every,
-            "max_episodes": cfg.max_episodes, "checkpoint": str(cfg.model), "steerable_layers": vla.steerable_layers()}
+            "max_episodes": cfg.max_episodes, "checkpoint": str(cfg.model), "steerable_layers": vla.steerable_layers(),
+            "weights": None if load_policy else weights_fingerprint(str(cfg.model))}
     with ActivationWriter(
         out, model=vla.name, layers=layers, widths={name: vla.layer_width(name) for name in layers},
         pooling=cfg.pooling, dtype=cfg.dtype, shard_size=cfg.shard_size, info=info,
     ) as writer:
         if writer.meta["info"].get("dataset_fingerprint") != frames.fingerprint:
             raise UsageError(f"{str(out)!r} holds activations of another dataset; choose another output_dir=...")
+        if writer.meta["info"].get("weights", info["weights"]) != info["weights"]:
+            raise UsageError(f"{str(out)!r} holds activations of other weights of {cfg.model!r} (retrained?); "
+                             "choose another output_dir=...")
         save_config(cfg, out)
         keep &= ~np.isin(frames.episode, list(writer.episodes()))
         rows = np.flatnonzero(keep)
