@@ -28,8 +28,8 @@ class ExpertConfig:
     travel_clearance: float = 0.12  # above the top of the highest relevant object
     max_travel_z: float = 1.2  # the Panda cannot reach much higher over the far side of the table
     tolerance: float = 0.01
-    final_approach: float = 0.03  # the last metres of the descent are slow: a policy that closes a step early or
-    final_speed: float = 0.3  # late then lands ~4 mm off, not ~12 mm (action units; 1.0 moves the hand ~12 mm a step)
+    final_approach: float = 0.03  # the last 3 cm of the descent are slower, so a close a step early or late lands
+    final_speed: float = 0.3  # nearer the grasp point: 4-5 mm a step, was 5-8 mm (action units; 1.0 moves ~12 mm)
     close_steps: int = 10
     preclose_steps: int = 3  # gripper commands of +1 before a rim grasp: the fingers end about half open
     open_steps: int = 8

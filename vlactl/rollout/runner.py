@@ -78,13 +78,12 @@ def steering(cfg: DictConfig, constraint) -> Steering:
 def _steered_layers(chosen, table: pd.DataFrame) -> list[str]:
     """`layers=`: a list of layer names; a group (`backbone`, `expert`: its every steerable layer that has a probe);
     or null: the best steerable layer."""
-    from vlactl.steering.train_probes import best_layers
+    from vlactl.steering.train_probes import best_layers, steerable_rows
 
     if chosen is None:
         return list(best_layers(table, steerable=True)["layer"])
     if isinstance(chosen, str):
-        steerable = table[table["steerable"]] if "steerable" in table else table
-        group = [layer for layer in dict.fromkeys(steerable["layer"]) if layer.split(".")[0] == chosen]
+        group = [layer for layer in dict.fromkeys(steerable_rows(table)["layer"]) if layer.split(".")[0] == chosen]
         return group or [chosen]
     return list(chosen)
 

@@ -162,11 +162,16 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
     return rows
 
 
+def steerable_rows(table: pd.DataFrame) -> pd.DataFrame:
+    """The rows of layers whose output can move the actions (all rows of a table without a `steerable` column)."""
+    return table[table["steerable"]] if "steerable" in table else table
+
+
 def best_layers(table: pd.DataFrame, steerable: bool = False) -> pd.DataFrame:
     """One row per feature: the layer whose probe scores best on the test episodes; with `steerable`, among the layers
     whose output can move the actions (where to steer it)."""
-    if steerable and "steerable" in table:
-        table = table[table["steerable"]]
+    if steerable:
+        table = steerable_rows(table)
     def column(name):  # a run of only regression or only logistic probes lacks the other kind's metrics
         return table[name] if name in table else pd.Series(np.nan, index=table.index)
 
