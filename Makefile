@@ -59,7 +59,8 @@ policies: install
 # The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
 # Fig. 1, sweep and Fig. 2, readings and Fig. 3, rollouts (unconstrained, then every constraint x method) and
 # Figs. 4-8 with summary.md. Every stage resumes when re-run; any stage can be re-run alone from the one before.
-# method=none acts as the unconstrained policy does, so its runs judge the unconstrained run's episodes (judge_from=).
+# method=none acts as the unconstrained policy does, so its runs judge the unconstrained run's episodes (judge_from=),
+# except under gripper=closed, where the baselines start with the gripper closed (the paper's favourable start).
 PAPER_MODEL ?= hybrid
 PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
 PAPER_EPISODES ?= 10
@@ -81,7 +82,7 @@ paper:
 	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
-	  judge=$$([ $$m = none ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
+	  judge=$$([ $$m = none ] && [ $$c != gripper=closed ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
 	  steer=$$(case $$c/$$m in gripper=*/control) echo '$(PAPER_GRIPPER_CONTROL)';; esac); \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
 	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts \

@@ -62,12 +62,25 @@ def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
         rollout(tmp_path, "method=none", f"judge_from={tmp_path / 'random_libero_spatial'}", "run_name=j2", "seed=1")
 
 
+@pytest.mark.slow
+def test_baselines_under_gripper_closed_start_with_the_gripper_closed(tmp_path):
+    rollout(tmp_path, "constraint=gripper=closed", "method=none")
+    out = tmp_path / "random_libero_spatial_gripper-closed_none"
+    first = pd.read_parquet(out / "steps.parquet")["gripper"].iloc[0]
+    opened = rollout(tmp_path, "constraint=none", "run_name=open")
+    assert opened["start_gripper"] == "open"
+    assert first < pd.read_parquet(tmp_path / "open" / "steps.parquet")["gripper"].iloc[0] - 0.5
+    assert pd.read_parquet(out / "episodes.parquet")["start_gripper"].tolist() == ["closed"]
+
+
 @pytest.mark.parametrize("extra, message", [
     (["method=control"], "needs probes="),
     (["method=steer"], "method"),
     (["constraint=none", "method=prompt"], "needs a constraint"),
     (["constraint=speed=slow"], "unknown constraint 'speed=slow'"),
     (["method=meandiff", "probes=/nonexistent"], "not a probe run folder"),
+    (["start_gripper=shut"], "start_gripper"),
+    (["constraint=gripper=closed", "method=none", "judge_from=/nonexistent"], "cannot stand in"),
 ])
 def test_bad_input_is_a_usage_error(tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):

@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from vlactl.errors import UsageError
-from vlactl.rollout.constraints import KINDS, box, judge_steps, parse_constraint, prompted
+from vlactl.rollout.constraints import KINDS, box, judge_steps, parse_constraint, prompted, start_gripper
 
 
 def test_parse_defaults_and_none():
@@ -52,3 +52,16 @@ def test_boxes_point_the_right_way():
 def test_prompt_appends_the_constraint():
     text = prompted("pick up the bowl", parse_constraint("gripper=closed"))
     assert text == "pick up the bowl and keep the gripper closed"
+
+
+@pytest.mark.parametrize("setting, constraint, method, expected", [
+    ("auto", "gripper=closed", "none", "closed"),  # the paper's favourable start for its baselines
+    ("auto", "gripper=closed", "prompt", "closed"),
+    ("auto", "gripper=closed", "control", "open"),  # the controller has to close it
+    ("auto", "gripper=open", "none", "open"),
+    ("auto", "height=low", "none", "open"),
+    ("auto", "none", "none", "open"),
+    ("closed", "height=low", "control", "closed"),  # asked for: taken as is
+])
+def test_start_gripper_follows_the_paper_for_its_baselines(setting, constraint, method, expected):
+    assert start_gripper(setting, parse_constraint(constraint), method) == expected

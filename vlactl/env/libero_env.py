@@ -93,8 +93,9 @@ class LiberoEnv:
     def n_init_states(self) -> int:
         return len(self._init_states)
 
-    def reset(self, init_state: int, seed: int = 0, render: bool = False) -> Observation:
-        """Reset to the suite's init state `init_state`, then settle with no-op steps.
+    def reset(self, init_state: int, seed: int = 0, render: bool = False, gripper: str = "open") -> Observation:
+        """Reset to the suite's init state `init_state`, then settle with no-op steps that hold the gripper `open`
+        (LIBERO's protocol) or `closed` (the paper's baselines under gripper=closed start that way).
 
         NumPy's global RNG is seeded right before the reset: LIBERO re-samples fixture placements from it and
         `set_init_state` does not restore them, so this makes (task, init state, seed) reproducible.
@@ -112,8 +113,10 @@ class LiberoEnv:
             robot.gripper.current_action = np.zeros(robot.gripper.dof)
         self._configure_renderer()
         raw = self.env.set_init_state(self._init_states[init_state])
+        settle = NOOP_ACTION.copy()
+        settle[-1] = {"open": -1.0, "closed": 1.0}[gripper]
         for _ in range(self.cfg.settle_steps):
-            raw, *_ = self.env.step(NOOP_ACTION)
+            raw, *_ = self.env.step(settle)
         return self._observe(raw, render)
 
     def step(self, action, render: bool = False) -> tuple[Observation, bool]:

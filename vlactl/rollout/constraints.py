@@ -68,6 +68,20 @@ def parse_constraint(text: str, window: int | None = None) -> Constraint | None:
     return Constraint(feature, value, window)
 
 
+START_GRIPPER = ("auto", "open", "closed")
+FAVOURED_METHODS = ("none", "prompt")  # the paper's baselines, which get the gripper constraint's state to start from
+
+
+def start_gripper(setting: str, constraint: Constraint | None, method: str) -> str:
+    """The gripper state an episode settles in: `open` or `closed` as asked, or for `auto` the paper's protocol
+    (§V-B): under a gripper constraint, no intervention and prompting start in the wanted state ("a favourable
+    initial condition"); everything else starts open, as LIBERO does."""
+    if setting != "auto":
+        return setting
+    favoured = constraint is not None and constraint.feature == "gripper" and method in FAVOURED_METHODS
+    return constraint.value if favoured else "open"
+
+
 def reference(constraint: Constraint, start_z: float, speed_threshold: float) -> float:
     """The level a step is compared with: 0 for the gripper action, the start height, or the speed threshold."""
     return {"gripper": 0.0, "height": start_z, "speed": speed_threshold}[constraint.feature]

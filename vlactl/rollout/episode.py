@@ -39,9 +39,10 @@ def run_episode(
     render: bool,
     keep_frames: bool = False,
     hooks: Sequence[StepHook] = (),
+    start_gripper: str = "open",
 ) -> EpisodeResult:
     start = time.perf_counter()
-    obs = env.reset(init_state, seed=seed, render=render)
+    obs = env.reset(init_state, seed=seed, render=render, gripper=start_gripper)
     agent.reset(env, obs)
     states, actions, frames = [obs.state], [], [obs.images] if keep_frames else []
     success = False

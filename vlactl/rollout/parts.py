@@ -18,7 +18,8 @@ from vlactl.io import atomic_write_json, atomic_write_parquet
 EPISODE_KEY = ["task_id", "episode"]
 EPISODE_COLUMNS = [
     "suite", *EPISODE_KEY, "instruction", "init_state", "seed", "success", "steps", "wall_s", "model",
-    "method", "constraint", "satisfaction",  # satisfaction: fraction of the constraint window's steps satisfied
+    "method", "constraint", "start_gripper",  # the gripper state the episode settled in (open, or closed)
+    "satisfaction",  # the fraction of the constraint window's steps satisfied
 ]
 # With a constraint, steps also get the columns of vlactl.rollout.constraints.judge_steps and of
 # vlactl.rollout.constrained.READING_COLUMNS.

@@ -24,12 +24,14 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
-from vlactl.rollout.constraints import parse_constraint
+from vlactl.rollout.constraints import START_GRIPPER, parse_constraint, start_gripper
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
-SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env", "constraint", "window", "method")
+SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env", "constraint", "window", "method",
+                 "start_gripper")
+BEFORE_KEY = {"start_gripper": "open"}  # what runs saved before a key existed did
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -122,6 +124,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     constraint = parse_constraint(cfg.constraint, cfg.window)
     plan = steering(cfg, constraint)
+    check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
+    cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
     out = run_dir(cfg)
     _check_same_run(cfg, out)
 
@@ -138,9 +142,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
         load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
+        start_gripper=gripper,
     )
     if cfg.judge_from:
-        judge_run(cfg, constraint, plan, todo, out)
+        judge_run(cfg, constraint, plan, todo, out, gripper)
     else:
         _run_workers(spec, batches(todo, cfg.workers), out, keys, cfg.workers)
 
@@ -148,7 +153,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     atomic_write_parquet(out / "episodes.parquet", episodes)
     atomic_write_parquet(out / "steps.parquet", steps)
     summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
-               "method": cfg.method, "steered_layers": [p.layer for p in plan.probes]}
+               "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes]}
     summary.update(summarise_file(out / "episodes.parquet"))
     atomic_write_json(out / "summary.json", summary)
     print(format_summary(summary))
@@ -156,9 +161,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     return summary
 
 
-def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path) -> None:
+def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path, gripper: str) -> None:
     """method=none under a constraint without re-running: the policy acts as it does unconstrained, so judge the
-    episodes of the unconstrained run `judge_from` (same model, suite, seeds and settings) against the constraint."""
+    episodes of the unconstrained run `judge_from` (same model, suite, seeds and settings) against the constraint.
+    Not when the episodes start with the gripper closed: the unconstrained run started open."""
     import json
 
     import pandas as pd
@@ -168,6 +174,9 @@ def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int,
     if constraint is None or cfg.method != "none":
         raise UsageError(f"judge_from=... judges an unconstrained run under a constraint with method=none, not "
                          f"constraint={cfg.constraint} method={cfg.method}")
+    if gripper != "open":
+        raise UsageError(f"judge_from=... cannot stand in for episodes that start with the gripper {gripper} (the "
+                         f"unconstrained run started open); drop judge_from, or set start_gripper=open")
     source = stage_output(cfg.judge_from, "config.yaml", "rollout run", "vlactl rollout")
     unconstrained = {**OmegaConf.to_container(cfg, resolve=True), "constraint": "none", "method": "none"}
     clash = _differing_key(source / "config.yaml", unconstrained, [k for k in SAME_RUN_KEYS if k != "window"])
@@ -180,7 +189,8 @@ def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int,
                          f"{missing[0][0]}, episode {missing[0][1]} first); run it with the same tasks and episodes")
     for task, k in todo:
         base = parts.stem(source, task, k)
-        row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint.name, "method": "none"}
+        row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint.name, "method": "none",
+               "start_gripper": gripper}
         steps = judge_part(constraint, row, pd.read_parquet(base.with_suffix(".parquet")), plan.speed_threshold, {})
         parts.write(out, row, steps)
 
@@ -202,7 +212,8 @@ def run_dir(cfg: DictConfig) -> Path:
 def _differing_key(saved: Path, new: dict, keys) -> tuple | None:
     """(key, saved value, new value) of the first of `keys` on which a saved run config differs from `new`."""
     old = OmegaConf.to_container(OmegaConf.load(saved))
-    return next(((key, old.get(key), new[key]) for key in keys if old.get(key) != new[key]), None)
+    old = {key: old.get(key, BEFORE_KEY.get(key)) for key in keys}
+    return next(((key, old[key], new[key]) for key in keys if old[key] != new[key]), None)
 
 
 def _check_same_run(cfg: DictConfig, out: Path) -> None:

@@ -33,6 +33,7 @@ class RunSpec:
     constraint: str = "none"
     window: int | None = None
     steering: Steering = Steering("none")
+    start_gripper: str = "open"  # resolved: open or closed
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,8 @@ def run_batch(batch: Batch) -> None:
     constraint = parse_constraint(spec.constraint, spec.window)
     for k in batch.episodes:
         init_state, seed = k % env.n_init_states, spec.seed + k
-        result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video)
+        result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video,
+                             start_gripper=spec.start_gripper)
         if spec.video:
             from vlactl.rollout.video import write_video
 
@@ -96,7 +98,7 @@ def run_batch(batch: Batch) -> None:
             "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
             "wall_s": round(result.wall_s, 3), "model": spec.model, "method": spec.steering.method,
-            "constraint": constraint.name if constraint else "none",
+            "constraint": constraint.name if constraint else "none", "start_gripper": spec.start_gripper,
         }
         steps = parts.steps_frame(batch.task, k, result)
         if constraint is not None:
