@@ -50,14 +50,31 @@ def test_dataset_has_documented_frames(demo_run):
     assert (actions[:, 6] > 0).any() and (actions[:, 6] < 0).any()  # the gripper opens and closes
 
 
-def test_recovery_demonstration_starts_after_a_missed_grasp(tmp_path):
-    out = tmp_path / "recovery"
+@pytest.fixture(scope="module")
+def special_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("special") / "special"
     summary = run_demos(load_config("demos", ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}",
-                                              "episodes_per_task=0", "recovery_episodes_per_task=1"]))
+                                              "episodes_per_task=0", "recovery_episodes_per_task=1",
+                                              "closed_start_episodes_per_task=1"]))
+    return out.with_name("special.staging") / "task00", summary
+
+
+def test_recovery_demonstration_starts_after_a_missed_grasp(special_run):
+    staged, summary = special_run
     assert summary["attempted"] == 0 and summary["recovery"]["succeeded"] == 1
-    with np.load(tmp_path / "recovery.staging" / "task00" / "rec0000.npz") as ep:
+    with np.load(staged / "rec0000.npz") as ep:
         aperture, grip = ep["robot_state"][:, 6], ep["action"][:, 6]
     assert aperture[0] < 0.08  # recorded from the lift of an empty, closed gripper
     opened = np.flatnonzero(grip < 0)
     assert opened.size and opened[0] < 10  # it opens at once ...
     assert (grip[opened[0]:] > 0).any()  # ... and grasps again
+
+
+def test_closed_start_demonstration_labels_the_held_gripper_open(special_run):
+    staged, summary = special_run
+    assert summary["closed_start"]["succeeded"] == 1
+    with np.load(staged / "cls0000.npz") as ep:
+        aperture, grip = ep["robot_state"][:, 6], ep["action"][:, 6]
+    assert aperture[0] < 0.3  # settled closed ...
+    assert (grip[:5] < 0).all()  # ... while the recorded labels are the expert's: open
+    assert (aperture > 0.8).any() and (grip > 0).any()  # it opens, then grasps

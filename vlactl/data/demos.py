@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import time
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,15 +23,32 @@ from vlactl.errors import UsageError, check_choice, check_non_negative, check_po
 from vlactl.io import atomic_path, atomic_write_json, ensure_writable_dir
 
 SUMMARY_NAME = "vlactl_demos.json"
-RECOVERY_SEED = 100_000  # recovery episodes' seeds start here, apart from the normal episodes'
 
 
-def _episode_stem(staging: Path, task: int, k: int, recovery: bool = False) -> Path:
-    return staging / f"task{task:02d}" / f"{'rec' if recovery else 'ep'}{k:04d}"
+@dataclass(frozen=True)
+class Kind:
+    """A kind of demonstration: its count option, the prefix of its staged files, where its seeds start (apart from
+    the other kinds'), and the summary key it is reported under."""
+
+    count: str
+    prefix: str
+    seed_offset: int
+    summary_key: str
 
 
-def _done(staging: Path, task: int, k: int, recovery: bool) -> bool:
-    stem = _episode_stem(staging, task, k, recovery)
+ORDINARY = Kind("episodes_per_task", "ep", 0, "")
+RECOVERY = Kind("recovery_episodes_per_task", "rec", 100_000, "recovery")
+CLOSED_START = Kind("closed_start_episodes_per_task", "cls", 200_000, "closed_start")
+KINDS = (ORDINARY, RECOVERY, CLOSED_START)
+CLOSED_STEPS = (5, 20)  # closed-start episodes hold the gripper closed this many steps (drawn per episode)
+
+
+def _episode_stem(staging: Path, task: int, k: int, kind: Kind = ORDINARY) -> Path:
+    return staging / f"task{task:02d}" / f"{kind.prefix}{k:04d}"
+
+
+def _done(staging: Path, task: int, k: int, kind: Kind) -> bool:
+    stem = _episode_stem(staging, task, k, kind)
     return stem.with_suffix(".npz").exists() or stem.with_suffix(".json").exists()
 
 
@@ -39,8 +56,8 @@ def run_demos(cfg: DictConfig) -> dict:
     from vlactl.env.suites import SUITES, resolve_tasks
 
     check_choice("suite", cfg.suite, SUITES)
-    check_non_negative("episodes_per_task", cfg.episodes_per_task)
-    check_non_negative("recovery_episodes_per_task", cfg.recovery_episodes_per_task)
+    for kind in KINDS:
+        check_non_negative(kind.count, cfg[kind.count])
     check_positive("workers", cfg.workers)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     out = resolve_path(cfg.output_dir)
@@ -48,11 +65,11 @@ def run_demos(cfg: DictConfig) -> dict:
     staging = ensure_writable_dir(out.with_name(out.name + ".staging"))
     save_config(cfg, staging)
 
-    kinds = [(False, cfg.episodes_per_task, cfg.seed), (True, cfg.recovery_episodes_per_task, cfg.seed + RECOVERY_SEED)]
-    everything = [(t, k, rec, seed + k) for rec, n, seed in kinds for t in tasks for k in range(n)]
+    everything = [(t, k, kind, cfg.seed + kind.seed_offset + k) for kind in KINDS for t in tasks
+                  for k in range(cfg[kind.count])]
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-    work = [(cfg.suite, t, k, rec, seed, env_cfg, str(staging))
-            for t, k, rec, seed in everything if not _done(staging, t, k, rec)]
+    work = [(cfg.suite, t, k, kind, seed, env_cfg, str(staging))
+            for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
@@ -64,12 +81,13 @@ def run_demos(cfg: DictConfig) -> dict:
     bar.close()
 
     summary = summarise(staging, cfg.suite, tasks, cfg.episodes_per_task)
-    if cfg.recovery_episodes_per_task:
-        summary["recovery"] = summarise(staging, cfg.suite, tasks, cfg.recovery_episodes_per_task, recovery=True)
+    for kind in KINDS[1:]:
+        if cfg[kind.count]:
+            summary[kind.summary_key] = summarise(staging, cfg.suite, tasks, cfg[kind.count], kind)
     episodes = sorted(
         stem.with_suffix(".npz")
-        for t, k, rec, _ in everything
-        if (stem := _episode_stem(staging, t, k, rec)).with_suffix(".npz").exists()
+        for t, k, kind, _ in everything
+        if (stem := _episode_stem(staging, t, k, kind)).with_suffix(".npz").exists()
     )
     from vlactl.data.lerobot_format import write_dataset
 
@@ -81,11 +99,11 @@ def run_demos(cfg: DictConfig) -> dict:
     return summary
 
 
-def summarise(staging: Path, suite: str, tasks: list[int], per_task: int, recovery: bool = False) -> dict:
+def summarise(staging: Path, suite: str, tasks: list[int], per_task: int, kind: Kind = ORDINARY) -> dict:
     rows = {}
     for t in tasks:
-        ok = sum(_episode_stem(staging, t, k, recovery).with_suffix(".npz").exists() for k in range(per_task))
-        failed = sum(_episode_stem(staging, t, k, recovery).with_suffix(".json").exists() for k in range(per_task))
+        ok = sum(_episode_stem(staging, t, k, kind).with_suffix(".npz").exists() for k in range(per_task))
+        failed = sum(_episode_stem(staging, t, k, kind).with_suffix(".json").exists() for k in range(per_task))
         rows[t] = {"attempted": ok + failed, "succeeded": ok, "failed": failed,
                    "success_rate": ok / (ok + failed) if ok + failed else None}
     attempted = sum(r["attempted"] for r in rows.values())
@@ -99,9 +117,11 @@ def _print_summary(summary: dict) -> None:
           f"({summary['failed']} failures, not kept)")
     for t, row in summary["per_task"].items():
         print(f"  task {t}: {row['succeeded']}/{row['attempted']}")
-    if "recovery" in summary:
-        rec = summary["recovery"]
-        print(f"recovery demonstrations: {rec['succeeded']}/{rec['attempted']} succeeded")
+    for kind in KINDS[1:]:
+        if kind.summary_key in summary:
+            part = summary[kind.summary_key]
+            print(f"{kind.summary_key.replace('_', '-')} demonstrations: {part['succeeded']}/{part['attempted']} "
+                  f"succeeded")
 
 
 def _load(path: Path) -> dict:
@@ -138,21 +158,28 @@ def _generate_episode(job) -> bool:
     from vlactl.env.features import speeds
     from vlactl.expert.scripted import ExpertConfig, ScriptedExpert
 
-    suite, task, k, recovery, seed, env_cfg, staging = job
+    suite, task, k, kind, seed, env_cfg, staging = job
     env = _env(suite, task, env_cfg)
     init_state = k % env.n_init_states
     # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
     # gripper: the states a policy reaches after closing too high, and the way out (open, descend, grasp again).
+    recovery = kind == RECOVERY
     expert = ScriptedExpert(ExpertConfig(miss_first_grasp=recovery))
+    # A closed-start demonstration starts with the gripper closed and keeps it closed for its first few steps
+    # whatever the expert says, while the recorded actions stay the expert's own (open): DART-style, the states
+    # come from a perturbed execution and the labels from the expert, so a policy learns to open a gripper that
+    # something else (a controller, a favourable start) closed.
+    closed_steps = int(np.random.default_rng(seed).integers(*CLOSED_STEPS, endpoint=True)) if kind == CLOSED_START else 0
     start = time.time()
-    obs = env.reset(init_state, seed=seed, render=True)
+    obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps else "open")
     expert.reset(env, obs)
     frames = {"image": [], "wrist_image": [], "libero_state": [], "robot_state": [], "action": []}
     positions = []
     success = False
     recording = not recovery
-    for _ in range(env.max_steps):
+    for t in range(env.max_steps):
         action = expert.act(obs)
+        executed = np.concatenate([action[:-1], [1.0]]) if t < closed_steps else action
         recording = recording or expert.phase == "lift"
         if recording:
             frames["image"].append(obs.images["image"])
@@ -161,11 +188,11 @@ def _generate_episode(job) -> bool:
             frames["robot_state"].append(obs.state)
             frames["action"].append(action)
             positions.append(obs.state[:3])
-        obs, success = env.step(action, render=True)
+        obs, success = env.step(executed, render=True)
         if success:
             break
     positions.append(obs.state[:3])
-    stem = _episode_stem(Path(staging), task, k, recovery)
+    stem = _episode_stem(Path(staging), task, k, kind)
     stem.parent.mkdir(parents=True, exist_ok=True)
     meta = {"task_id": task, "init_state": init_state, "seed": seed, "steps": len(frames["action"]),
             "wall_s": round(time.time() - start, 2)}
