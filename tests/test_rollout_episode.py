@@ -20,7 +20,7 @@ class FakeEnv:
     def __init__(self, goal=0.1):
         self.goal, self.z = goal, 0.0
 
-    def reset(self, init_state, seed=0, render=False):
+    def reset(self, init_state, seed=0, render=False, gripper="open"):
         self.z = 0.0
         return self._obs()
 
