@@ -156,7 +156,7 @@ def _env(suite: str, task: int, env_cfg: dict):
 
 def _generate_episode(job) -> bool:
     from vlactl.env.features import speeds
-    from vlactl.expert.scripted import ExpertConfig, ScriptedExpert
+    from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
     suite, task, k, kind, seed, env_cfg, staging = job
     env = _env(suite, task, env_cfg)
@@ -169,7 +169,9 @@ def _generate_episode(job) -> bool:
     # whatever the expert says, while the recorded actions stay the expert's own (open): DART-style, the states
     # come from a perturbed execution and the labels from the expert, so a policy learns to open a gripper that
     # something else (a controller, a favourable start) closed.
-    closed_steps = int(np.random.default_rng(seed).integers(*CLOSED_STEPS, endpoint=True)) if kind == CLOSED_START else 0
+    closed_steps = 0
+    if kind == CLOSED_START:
+        closed_steps = int(np.random.default_rng(seed).integers(*CLOSED_STEPS, endpoint=True))
     start = time.time()
     obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps else "open")
     expert.reset(env, obs)
@@ -179,7 +181,7 @@ def _generate_episode(job) -> bool:
     recording = not recovery
     for t in range(env.max_steps):
         action = expert.act(obs)
-        executed = np.concatenate([action[:-1], [1.0]]) if t < closed_steps else action
+        executed = np.concatenate([action[:-1], [CLOSE]]) if t < closed_steps else action
         recording = recording or expert.phase == "lift"
         if recording:
             frames["image"].append(obs.images["image"])

@@ -22,7 +22,8 @@ from vlactl.env.suites import MAX_STEPS, TaskInfo, init_states, task_info
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 IMAGE_KEYS = {"agentview": "image", "robot0_eye_in_hand": "wrist_image"}
-NOOP_ACTION = np.array([0, 0, 0, 0, 0, 0, -1], dtype=np.float64)  # hold still, gripper open
+GRIPPER_COMMAND = {"open": -1.0, "closed": 1.0}  # LIBERO's gripper action for each state
+NOOP_ACTION = np.array([0, 0, 0, 0, 0, 0, GRIPPER_COMMAND["open"]], dtype=np.float64)  # hold still, gripper open
 
 
 @dataclass(frozen=True)
@@ -114,7 +115,7 @@ class LiberoEnv:
         self._configure_renderer()
         raw = self.env.set_init_state(self._init_states[init_state])
         settle = NOOP_ACTION.copy()
-        settle[-1] = {"open": -1.0, "closed": 1.0}[gripper]
+        settle[-1] = GRIPPER_COMMAND[gripper]
         for _ in range(self.cfg.settle_steps):
             raw, *_ = self.env.step(settle)
         return self._observe(raw, render)

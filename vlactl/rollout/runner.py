@@ -161,7 +161,9 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     return summary
 
 
-def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path, gripper: str) -> None:
+def judge_run(
+    cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path, gripper: str
+) -> None:
     """method=none under a constraint without re-running: the policy acts as it does unconstrained, so judge the
     episodes of the unconstrained run `judge_from` (same model, suite, seeds and settings) against the constraint.
     Not when the episodes start with the gripper closed: the unconstrained run started open."""
