@@ -98,6 +98,22 @@ def test_logistic_reaches_the_same_optimum_as_scikit_learn():
         np.testing.assert_allclose(float(b[layer]), ref.intercept_[0], rtol=1e-3, atol=1e-4)
 
 
+def test_logistic_fits_many_wide_layers_with_two_threads():
+    # batched LU solves of this size failed inside MKL with 2 threads; vlactl train-probes threads=2 hit it
+    data = planted_activations(n_layers=3, n_episodes=20, frames=30, d=256, n_features=1, planted_every=1, seed=4)
+    z = torch.from_numpy(data.x)
+    z = (z - z.mean(1, keepdim=True)) / z.std(1, keepdim=True)
+    y = torch.as_tensor(data.latent[:, 0] < 0).double()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        w, b = fit_logistic(z, y, l2=1.0)
+    finally:
+        torch.set_num_threads(threads)
+    accuracy = ((torch.einsum("lnp,lp->ln", z.double(), w) + b[:, None] > 0) == y.bool()).double().mean(1)
+    assert (accuracy > 0.9).all()
+
+
 def test_probe_reading_is_linear_in_the_raw_representation(planted):
     data, _, _, _, _, probes, _ = planted
     probe = probes.probe(1, 0, feature="x", layer="backbone.1", model="m", pooling="prefix")

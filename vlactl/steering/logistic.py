@@ -62,7 +62,7 @@ def fit_logistic(
         delta = torch.zeros_like(grad)
         built = [i for i, layer in enumerate(moving) if state[layer] > 0]
         if built:
-            delta[built] = -torch.linalg.solve(hess[idx[built]], grad[built])
+            delta[built] = -_spd_solve(hess[idx[built]], grad[built])
         decrement = -(grad * delta).sum(-1)
         # a new Hessian unless the layer has its current one, or its old one already gives the last step
         last = decrement < tol * n
@@ -70,7 +70,7 @@ def fit_logistic(
         for i in renew:
             hess[moving[i]] = _weighted_gram(z[moving[i]], prob[i] * (1 - prob[i]), scratch) + penalty
         if renew:
-            delta[renew] = -torch.linalg.solve(hess[idx[renew]], grad[renew])
+            delta[renew] = -_spd_solve(hess[idx[renew]], grad[renew])
             decrement = -(grad * delta).sum(-1)
         dw, db = delta[:, :p], delta[:, p]
         ds = torch.stack([z[layer] @ dw[i].to(z.dtype) for i, layer in enumerate(moving)]) + db[:, None].to(z.dtype)
@@ -80,6 +80,13 @@ def fit_logistic(
         state[idx] = 1  # every moving layer now holds a Hessian, from before this step
         moving = [layer for layer, dec in zip(moving, decrement.tolist()) if dec >= tol * n]
     return w, b
+
+
+def _spd_solve(hess: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+    """hess [M, q, q] positive definite (penalised weights, intercept row sum(d) > 0), grad [M, q] -> hess^-1 grad.
+    Cholesky, not torch.linalg.solve: its batched LU fails inside MKL with 2+ threads at this size (torch 2.14,
+    "Pivots given to lu_solve must all be greater or equal to 1")."""
+    return torch.cholesky_solve(grad[..., None], torch.linalg.cholesky(hess))[..., 0]
 
 
 def _weighted_gram(z: torch.Tensor, d: torch.Tensor, scratch: torch.Tensor) -> torch.Tensor:
