@@ -21,7 +21,7 @@ def probes(tmp_path_factory):
     result = runner.invoke(app, ["collect", "model=random", f"dataset={demos}", f"output_dir={tmp / 'acts'}", *common])
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["train-probes", f"activations={tmp / 'acts'}", f"output_dir={tmp / 'run'}",
-                                 "features=[gripper_action]", "cv_folds=2", "robustness_directions=2"])
+                                 "features=[gripper_action,dx,dz]", "cv_folds=2", "robustness_directions=2"])
     assert result.exit_code == 0, result.output
     return tmp / "run"
 
@@ -43,6 +43,26 @@ def test_control_keeps_the_steered_reading_in_the_box(probes, tmp_path):
     window = steps[steps["in_window"]]
     assert episodes["satisfaction"].iloc[0] == pytest.approx(float((window["gripper_action"] <= 0).mean()))
     assert summary["method"] == "control" and summary["steered_layers"] and "satisfaction" in summary
+
+
+def test_control_with_held_readings_still_lands_in_the_box(probes, tmp_path):
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", "logit_margin=3", "hold=[dx,dz]")
+    steps = pd.read_parquet(tmp_path / "random_libero_spatial_gripper-open_control" / "steps.parquet")
+    assert (steps.dropna(subset=["reading_after"])["reading_after"] <= -3 + 1e-4).all()
+    assert summary["held"] == ["dx", "dz"]
+    with pytest.raises(UsageError, match="hold=.* not"):  # a run saved without holds is not resumed with them
+        rollout(tmp_path, "method=control", f"probes={probes}", "hold=[dx]")
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["method=alpha", "hold=[dx]"], "needs method=control"),
+    (["method=control", "hold=[gripper_action]"], "hold feature"),
+    (["method=control", "hold=[dy]"], "no probe"),
+    (["method=control", "hold=[dx]", "hold_tolerance=-1"], "hold_tolerance"),
+])
+def test_bad_holds_are_usage_errors(probes, tmp_path, extra, message):
+    with pytest.raises(UsageError, match=message):
+        rollout(tmp_path, f"probes={probes}", *extra)
 
 
 @pytest.mark.slow

@@ -115,6 +115,21 @@ def test_no_random_feasible_point_is_shorter(seed, k, extra_dims, width):
         assert bool((cand[feasible].norm(dim=-1) >= c.norm[0] * (1 - 1e-9)).all())
 
 
+@settings(max_examples=100, deadline=None)
+@given(SEEDS, st.integers(1, 8), st.integers(1, 3), st.integers(1, 8), st.floats(0.0, 0.5))
+def test_held_readings_move_at_most_their_tolerance(seed, rows, holds, extra_dims, tol):
+    x, w, b, lo, hi = _problem(seed, rows, holds + extra_dims, holds + 1, 1.0)
+    lo[1:], hi[1:] = -tol, tol  # probe 0 gets its box, the others may move by at most tol
+    relative = [False] + [True] * holds
+    c = multi_box_control(x, w, b, lo, hi, relative=relative)
+    assert _inside(c.after[:, 0], lo[0], hi[0])
+    assert bool(((c.after[:, 1:] - c.before[:, 1:]).abs() <= tol + 1e-6 * (1 + c.before[:, 1:].abs())).all())
+    free = multi_box_control(x, w[:1], b[:1], lo[:1], hi[:1])
+    assert bool((c.norm >= free.norm - 1e-9).all())  # holding costs push, never saves it
+    if tol == 0:  # exact holds: the push is orthogonal to every held probe
+        assert bool(((c.u @ w[1:].mT).abs() <= 1e-7 * (1 + c.u.abs().amax())).all())
+
+
 def test_parallel_probes_with_compatible_boxes():
     w = torch.tensor([[1.0, 0.0], [2.0, 0.0]])
     x = torch.tensor([[5.0, 1.0]])

@@ -65,6 +65,18 @@ def test_several_boxes_on_one_layer_hold_at_once():
     assert all(row["zmin"] - 1e-6 <= row["after"] <= row["zmax"] + 1e-6 for row in steer.log)
 
 
+def test_a_held_reading_stays_where_it_was():
+    vla, obs = tiny_policy("hybrid"), observation(2)
+    a, held = probe(vla, seed=1), probe(vla, feature="x", seed=2)
+    boxes = [Constraint(a, 5.0, 6.0), Constraint(held, -0.01, 0.01, relative=True)]
+    with Steerer(vla, boxes) as steer, torch.inference_mode():
+        vla.predict_action_chunk(obs)
+    rows = [row for row in steer.log if row["feature"] == "x"]
+    assert rows and all(abs(row["after"] - row["before"]) <= 0.01 + 1e-6 for row in rows)
+    assert all(row["zmin"] - 1e-6 <= row["after"] <= row["zmax"] + 1e-6 for row in steer.log)
+    assert any(row["active"] for row in steer.log)
+
+
 def test_fixed_alpha_and_direction_push_by_the_same_amount_every_time():
     vla, obs = tiny_policy("hybrid"), observation(2)
     p = probe(vla)

@@ -31,6 +31,8 @@ class Steering:
     alpha: float = 4.0
     logit_margin: float = 2.0
     speed_threshold: float = 0.0
+    holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
+    hold_tolerance: float = 0.0
 
 
 class ConstrainedAgent(VLAAgent):
@@ -45,7 +47,9 @@ class ConstrainedAgent(VLAAgent):
             self._instruction = prompted(env.instruction, self.constraint)
         level = reference(self.constraint, float(obs.state[2]), self.steering.speed_threshold)
         zmin, zmax = box(self.constraint, level, self.steering.logit_margin)
-        self._boxes = [ProbeBox(p, zmin, zmax) for p in self.steering.probes]
+        tol = self.steering.hold_tolerance
+        held = [ProbeBox(p, -tol, tol, relative=True) for p in self.steering.holds]
+        self._boxes = [ProbeBox(p, zmin, zmax) for p in self.steering.probes] + held  # per layer, the constraint first
         self._t, self.readings = 0, {}
 
     def act(self, obs):

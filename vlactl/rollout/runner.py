@@ -30,8 +30,8 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env", "constraint", "window", "method",
-                 "start_gripper")
-BEFORE_KEY = {"start_gripper": "open"}  # what runs saved before a key existed did
+                 "start_gripper", "hold", "hold_tolerance")
+BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0}  # what runs saved before a key existed did
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -71,10 +71,40 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         if missing or not layers:
             raise UsageError(f"no {feature!r} probe for layer {missing[0] if missing else '?'} in {cfg.probes!r}")
         probes = tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
+    holds = _hold_probes(cfg, constraint, [p.layer for p in probes])
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
-                    speed_threshold=float(threshold or 0.0))
+                    speed_threshold=float(threshold or 0.0), holds=holds, hold_tolerance=float(cfg.hold_tolerance))
+
+
+def _hold_probes(cfg: DictConfig, constraint, layers: list[str]) -> tuple:
+    """`hold=[dx, dy, dz]`: on every steered layer, the probes of those features, whose readings the controller keeps
+    within hold_tolerance of their unsteered values (the controller's multi-box QP with relative boxes)."""
+    from vlactl.steering.activations import FEATURES
+    from vlactl.steering.controller import MAX_PROBES
+    from vlactl.steering.probe_file import load_probe
+    from vlactl.steering.train_probes import probe_filename
+
+    features = list(cfg.hold or [])
+    if not features:
+        return ()
+    if cfg.method != "control":
+        raise UsageError(f"hold={features} needs method=control, not {cfg.method!r}")
+    allowed = [f for f in FEATURES if f != constraint.probe_feature]
+    for feature in features:
+        check_choice("hold feature", feature, allowed)
+    if len(set(features)) + 1 > MAX_PROBES:
+        raise UsageError(f"hold={features}: at most {MAX_PROBES - 1} features can be held beside the constraint")
+    if float(cfg.hold_tolerance) < 0:
+        raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
+    run = resolve_path(cfg.probes)
+    paths = [run / "probes" / probe_filename(layer, f) for layer in layers for f in dict.fromkeys(features)]
+    missing = [path.name for path in paths if not path.is_file()]
+    if missing:
+        raise UsageError(f"hold={features}: no probe {missing[0]} in {cfg.probes!r}; train it with `vlactl "
+                         f"train-probes features=[...]` on the same activations")
+    return tuple(load_probe(path) for path in paths)
 
 
 def _steered_layers(chosen, table: pd.DataFrame) -> list[str]:
@@ -153,7 +183,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     atomic_write_parquet(out / "episodes.parquet", episodes)
     atomic_write_parquet(out / "steps.parquet", steps)
     summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
-               "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes]}
+               "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes],
+               "held": sorted({p.feature for p in plan.holds})}
     summary.update(summarise_file(out / "episodes.parquet"))
     atomic_write_json(out / "summary.json", summary)
     print(format_summary(summary))

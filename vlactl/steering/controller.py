@@ -66,15 +66,20 @@ def box_control(x: torch.Tensor, w: torch.Tensor, b, zmin=-torch.inf, zmax=torch
     return _result(x, wd, bd, u.to(x.dtype))
 
 
-def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: float = 1e-9) -> Control:
-    """The exact minimum-norm u for k probes at once: x [B, d], w [k, d], b, zmin, zmax [k] (bounds may be inf)."""
+def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: float = 1e-9, relative=None) -> Control:
+    """The exact minimum-norm u for k probes at once: x [B, d], w [k, d], b, zmin, zmax [k] (bounds may be inf).
+
+    relative [k] bool: that probe's box is [zeta + zmin, zeta + zmax] around its own unsteered reading zeta, i.e. a
+    bound on how far u may move it (zmin = zmax = 0: u leaves that reading alone, so it is orthogonal to its probe)."""
     xd, wd, bd, lo, hi = _float64(x, w, b, zmin, zmax)
     _check(wd, lo, hi)
     k = wd.shape[0]
     if k > MAX_PROBES:
         raise ValueError(f"at most {MAX_PROBES} probes can be controlled on one layer, got {k}")
     zeta = xd @ wd.mT + bd  # [B, k]
-    need_lo, need_hi = lo - zeta, hi - zeta  # the reading change r = W u must lie in [need_lo, need_hi]
+    relative = torch.zeros(k, dtype=torch.bool) if relative is None else torch.as_tensor(relative, dtype=torch.bool)
+    # the reading change r = W u must lie in [need_lo, need_hi]
+    need_lo, need_hi = (torch.where(relative, bound, bound - zeta) for bound in (lo, hi))
     gram = wd @ wd.mT  # [k, k]
     scale = 1 + zeta.abs().amax(-1)
     rows = x.shape[0]

@@ -24,11 +24,13 @@ METHODS = ("control", "alpha", "direction")
 
 @dataclass
 class Constraint:
-    """Keep `probe`'s reading (the logit, for a logistic probe) in [zmin, zmax] at the probe's layer."""
+    """Keep `probe`'s reading (the logit, for a logistic probe) in [zmin, zmax] at the probe's layer; if `relative`,
+    within [zmin, zmax] of its unsteered reading (a hold: the push may move it only that far)."""
 
     probe: Probe
     zmin: float = -math.inf
     zmax: float = math.inf
+    relative: bool = False
 
     @property
     def layer(self) -> str:
@@ -73,8 +75,9 @@ class Steerer:
         lo = torch.tensor([c.zmin for c in constraints], dtype=torch.float64)
         hi = torch.tensor([c.zmax for c in constraints], dtype=torch.float64)
         if self.method == "control":
-            u = (box_control(x, w[0], b[0], lo[0], hi[0]) if len(constraints) == 1
-                 else multi_box_control(x, w, b, lo, hi)).u
+            relative = [c.relative for c in constraints]
+            u = (box_control(x, w[0], b[0], lo[0], hi[0]) if relative == [False]
+                 else multi_box_control(x, w, b, lo, hi, relative=relative)).u
         else:
             d = w[0] / w[0].norm() if self.method == "alpha" else self.directions[layer].double()
             u = (self.alpha * d).to(x.dtype).expand_as(x)
@@ -83,9 +86,11 @@ class Steerer:
         norm = u.double().norm(dim=-1)
         for row in range(x.shape[0]):
             for k, c in enumerate(constraints):
+                origin = float(before[row, k]) if c.relative else 0.0  # the log holds every box in reading units
                 self.log.append({
                     "forward": self._forwards, "layer": layer, "feature": c.probe.feature, "row": row,
-                    "before": float(before[row, k]), "after": float(after[row, k]), "zmin": c.zmin, "zmax": c.zmax,
+                    "before": float(before[row, k]), "after": float(after[row, k]),
+                    "zmin": origin + c.zmin, "zmax": origin + c.zmax,
                     "u_norm": float(norm[row]), "active": bool(norm[row] > 0),
                 })
         self._forwards += 1
