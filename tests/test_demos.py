@@ -55,7 +55,8 @@ def special_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("special") / "special"
     summary = run_demos(load_config("demos", ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}",
                                               "episodes_per_task=0", "recovery_episodes_per_task=1",
-                                              "closed_start_episodes_per_task=1"]))
+                                              "closed_start_episodes_per_task=1",
+                                              "closed_approach_episodes_per_task=1"]))
     return out.with_name("special.staging") / "task00", summary
 
 
@@ -78,3 +79,15 @@ def test_closed_start_demonstration_labels_the_held_gripper_open(special_run):
     assert aperture[0] < 0.3  # settled closed ...
     assert (grip[:5] < 0).all()  # ... while the recorded labels are the expert's: open
     assert (aperture > 0.8).any() and (grip > 0).any()  # it opens, then grasps
+
+
+def test_closed_approach_demonstration_keeps_the_gripper_closed_until_over_the_grasp(special_run):
+    staged, summary = special_run
+    assert summary["closed_approach"]["succeeded"] == 1
+    with np.load(staged / "cla0000.npz") as ep:
+        aperture, grip, z = ep["robot_state"][:, 6], ep["action"][:, 6], ep["robot_state"][:, 2]
+    opened = np.flatnonzero(grip < 0)
+    assert aperture[0] < 0.3 and opened.size and opened[0] >= 5  # settled closed, labelled closed on the way
+    assert (grip[:opened[0]] > 0).all()
+    assert z[opened[0]] >= z[opened[0]:].min() + 0.03  # it opens above the grasp height, then goes down to grasp
+    assert (grip[opened[0]:] > 0).any()

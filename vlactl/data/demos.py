@@ -39,7 +39,8 @@ class Kind:
 ORDINARY = Kind("episodes_per_task", "ep", 0, "")
 RECOVERY = Kind("recovery_episodes_per_task", "rec", 100_000, "recovery")
 CLOSED_START = Kind("closed_start_episodes_per_task", "cls", 200_000, "closed_start")
-KINDS = (ORDINARY, RECOVERY, CLOSED_START)
+CLOSED_APPROACH = Kind("closed_approach_episodes_per_task", "cla", 300_000, "closed_approach")
+KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH)
 CLOSED_STEPS = (5, 20)  # closed-start episodes hold the gripper closed this many steps (drawn per episode)
 
 
@@ -164,7 +165,11 @@ def _generate_episode(job) -> bool:
     # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
     # gripper: the states a policy reaches after closing too high, and the way out (open, descend, grasp again).
     recovery = kind == RECOVERY
-    expert = ScriptedExpert(ExpertConfig(miss_first_grasp=recovery))
+    # A closed-approach demonstration starts closed and the expert keeps it closed, label and all, until it is over
+    # the grasp point, then opens and grasps: a closed gripper on the way is then a state the policy knows how to go
+    # on from, which a gripper=closed constraint needs (docs/models.md). Contradicts closed-start labels: use one.
+    closed_approach = kind == CLOSED_APPROACH
+    expert = ScriptedExpert(ExpertConfig(miss_first_grasp=recovery, closed_approach=closed_approach))
     # A closed-start demonstration starts with the gripper closed and keeps it closed for its first few steps
     # whatever the expert says, while the recorded actions stay the expert's own (open): DART-style, the states
     # come from a perturbed execution and the labels from the expert, so a policy learns to open a gripper that
@@ -173,7 +178,7 @@ def _generate_episode(job) -> bool:
     if kind == CLOSED_START:
         closed_steps = int(np.random.default_rng(seed).integers(*CLOSED_STEPS, endpoint=True))
     start = time.time()
-    obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps else "open")
+    obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps or closed_approach else "open")
     expert.reset(env, obs)
     frames = {"image": [], "wrist_image": [], "libero_state": [], "robot_state": [], "action": []}
     positions = []

@@ -44,6 +44,7 @@ class ExpertConfig:
                                   # ramekin is held at 0.05, one on the table at 0.1): re-grasp at once
     miss_first_grasp: bool = False  # recovery demonstrations: the first grasp closes above the rim, on nothing
     miss_height: float = 0.03  # that grasp's height above the rim top: clear of it, so the bowl is not moved
+    closed_approach: bool = False  # approach with the gripper closed, open fully over the grasp point, then descend
 
 
 def _quat_mul(a, b):
@@ -98,6 +99,7 @@ class ScriptedExpert:
         self.obstacles = obstacle_boxes(sim.model, sim.data, [object_body(sim.model, self.target)])
         self.phase, self.timer, self.regrasps, self.failed = "approach", 0, 0, []
         self.missing = self.cfg.miss_first_grasp
+        self.closed_approach = self.cfg.closed_approach
         self.integral = np.zeros(3)
         self._plan_grasp(obs)
 
@@ -208,8 +210,10 @@ class ScriptedExpert:
                 above = np.array([eef[0], eef[1], hover])  # rise first, then move across
             # Already over the grasp point (a re-grasp after a miss): straight down.
             if (remaining < 0.01 and (eef[2] >= hover - 0.03 or eef[2] > self.grasp_point[2])) or self.timer > 60:
-                self._go("descend")
-            return self._servo(eef, above, OPEN, self.grasp_yaw)
+                # a closed approach opens first (regrasp_open), then comes back here already over the grasp point
+                self._go("regrasp_open" if self.closed_approach else "descend")
+                self.closed_approach = False
+            return self._servo(eef, above, CLOSE if self.closed_approach else OPEN, self.grasp_yaw)
         if self.phase == "descend":
             remaining = np.linalg.norm(self.grasp_point - eef)
             if remaining < cfg.tolerance or self.timer > 40:
