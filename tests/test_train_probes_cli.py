@@ -67,6 +67,9 @@ def test_train_probes_then_plot(acts, tmp_path, monkeypatch, capsys):
     (["train-probes", "@ACTS", "test_fraction=1.5"], "test_fraction"),
     (["train-probes", "@ACTS", "cv_folds=40"], "episodes"),
     (["train-probes", "@ACTS", "output_dir=/proc/vlactl-cannot-write"], "/proc/vlactl-cannot-write"),
+    (["train-probes", "@ACTS", "frames=elbow > 1"], "elbow"),
+    (["train-probes", "@ACTS", "frames=frame_index + 1"], "true/false"),
+    (["train-probes", "@ACTS", "frames=frame_index > 1000"], "no frame"),
     (["plot", "probes"], "run_dir="),
     (["plot", "probes", "run_dir=/nowhere"], "/nowhere"),
 ])
@@ -76,3 +79,13 @@ def test_bad_input_is_one_line_and_exit_2(acts, monkeypatch, capsys, args, needl
     assert code == 2, err
     lines = [line for line in err.splitlines() if line.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], err
+
+
+def test_frames_query_trains_on_the_chosen_frames_only(acts, tmp_path, monkeypatch, capsys):
+    folder, _ = acts
+    code, err = run_here(monkeypatch, capsys, "train-probes", f"activations={folder}", f"output_dir={tmp_path / 'early'}",
+                         "features=[x]", "frames=frame_index < 10", "robustness_directions=2")
+    assert code == 0, err
+    table = pd.read_parquet(tmp_path / "early" / "metrics.parquet")
+    full = 24 * 25
+    assert (table["n_train"] + table["n_test"] == 24 * 10).all() and (table["n_train"] < full).all()

@@ -163,11 +163,12 @@ def train_probes(
     output_dir: Optional[str] = typer.Option(None, "--output-dir"),
 ):
     """Fit a linear probe per layer x feature; writes metrics.parquet and one safetensors file per probe."""
-    from vlactl.config import load_config
+    from vlactl.config import load_config, quote_values
     from vlactl.steering.train_probes import run_train_probes
 
     run_train_probes(load_config(
-        "train_probes", _overrides(overrides, activations=activations, run=run, output_dir=output_dir)
+        "train_probes", quote_values(_overrides(overrides, activations=activations, run=run, output_dir=output_dir),
+                                     "frames")
     ))
 
 

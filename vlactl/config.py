@@ -32,6 +32,16 @@ def load_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
     return cfg
 
 
+def quote_values(overrides: list[str] | None, *keys: str) -> list[str]:
+    """`key=value` overrides of these keys with the value quoted, so Hydra takes it as written (`gripper=open`,
+    `frame_index < 25` would otherwise be grammar errors); values already holding a quote are left alone."""
+    def quoted(item: str) -> str:
+        key, _, value = item.partition("=")
+        return f"{key}='{value}'" if key in keys and "'" not in value else item
+
+    return [quoted(item) for item in overrides or []]
+
+
 def load_policy_stage_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
     """The config of a stage that runs a policy, with `model=<name or path>` applied after composing.
 

@@ -18,7 +18,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from vlactl.config import load_policy_stage_config, resolve_path, save_config, stage_output
+from vlactl.config import load_policy_stage_config, quote_values, resolve_path, save_config, stage_output
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
 from vlactl.rollout import parts
@@ -37,9 +37,7 @@ BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0}  # wha
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
     """The rollout config; `model` is a registry name, a checkpoint path, or `scripted`. `constraint=gripper=open`
     is taken as written (Hydra would need the value quoted)."""
-    quoted = [f"constraint='{item.split('=', 1)[1]}'" if item.startswith("constraint=") and "'" not in item else item
-              for item in overrides or []]
-    return load_policy_stage_config("rollout", quoted)
+    return load_policy_stage_config("rollout", quote_values(overrides, "constraint"))
 
 
 def steering(cfg: DictConfig, constraint) -> Steering:

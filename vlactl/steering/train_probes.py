@@ -82,6 +82,11 @@ def run_train_probes(cfg: DictConfig) -> Path:
             f"{cfg.cv_folds} cross-validation folds; collect at least {cfg.cv_folds + 2}"
         )
     train, test = split_by_episode(episodes, cfg.test_fraction, cfg.seed)
+    if cfg.frames:  # after the split, so that the episodes held out do not depend on the query
+        chosen = _frames(labels, cfg.frames)
+        train, test = train[chosen[train]], test[chosen[test]]
+        if not len(test):
+            raise UsageError(f"frames={cfg.frames!r} keeps no frame of the held-out episodes")
     if len(np.unique(episodes[train])) < cfg.cv_folds:
         raise UsageError(f"too few training episodes for cv_folds={cfg.cv_folds}; lower test_fraction or cv_folds")
     folds = episode_folds(episodes[train], cfg.cv_folds, cfg.seed)
@@ -119,6 +124,18 @@ def run_train_probes(cfg: DictConfig) -> Path:
     _print_best(table)
     print(f"wrote {out / METRICS_NAME} and {len(table)} probes under {out / 'probes'}", file=sys.stderr)
     return out
+
+
+def _frames(labels: pd.DataFrame, query: str) -> np.ndarray:
+    """Boolean mask of the frames a pandas query on the label table keeps, e.g. "frame_index < 25"."""
+    try:
+        mask = labels.eval(str(query))
+    except Exception as err:  # pandas raises many kinds for a bad expression
+        raise UsageError(f"frames={query!r} is not a query on the label columns ({', '.join(labels.columns)}): "
+                         f"{str(err).splitlines()[0] if str(err) else type(err).__name__}") from None
+    if getattr(mask, "dtype", None) != bool or len(mask) != len(labels):
+        raise UsageError(f"frames={query!r} must be a true/false condition per frame, e.g. \"frame_index < 25\"")
+    return mask.to_numpy()
 
 
 def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds, settings, out) -> list[dict]:
