@@ -46,18 +46,19 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     import pandas as pd
 
     from vlactl.data.frames import read_columns
-    from vlactl.steering.probe_file import load_probe
-    from vlactl.steering.train_probes import METRICS_NAME, probe_filename
+    from vlactl.steering.train_probes import METRICS_NAME
 
     check_choice("method", cfg.method, METHODS)
     if cfg.method != "none" and constraint is None:
         raise UsageError(f"method={cfg.method} needs a constraint, e.g. constraint=gripper=open")
     if cfg.method != "none" and cfg.model == SCRIPTED:
         raise UsageError(f"method={cfg.method} needs a VLA; the scripted expert takes no instruction or steering")
+    if cfg.hold and cfg.method != "control":
+        raise UsageError(f"hold={list(cfg.hold)} needs method=control, not {cfg.method!r}")
     threshold = cfg.speed_threshold
     if constraint is not None and constraint.feature == "speed" and threshold is None:
         threshold = float(np.median(read_columns(resolve_path(cfg.demos), ["speed"])["speed"]))
-    probes = ()
+    probes = holds = ()
     if cfg.method in STEERING:
         if cfg.probes is None:
             raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>")
@@ -65,44 +66,43 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         feature = constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
         layers = _steered_layers(cfg.layers, table[table["feature"] == feature])
-        missing = [layer for layer in layers if not (run / "probes" / probe_filename(layer, feature)).is_file()]
-        if missing or not layers:
-            raise UsageError(f"no {feature!r} probe for layer {missing[0] if missing else '?'} in {cfg.probes!r}")
-        probes = tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
-    holds = _hold_probes(cfg, constraint, [p.layer for p in probes])
+        probes = _load_probes(run, layers, feature, cfg.probes)
+        holds = _hold_probes(cfg, constraint, run, layers)
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=float(threshold or 0.0), holds=holds, hold_tolerance=float(cfg.hold_tolerance))
 
 
-def _hold_probes(cfg: DictConfig, constraint, layers: list[str]) -> tuple:
+def _load_probes(run: Path, layers: list[str], feature: str, source: str, hint: str = "") -> tuple:
+    """The probes of one feature at these layers from a probe run folder; a missing one is a one-line UsageError."""
+    from vlactl.steering.probe_file import load_probe
+    from vlactl.steering.train_probes import probe_filename
+
+    missing = [layer for layer in layers if not (run / "probes" / probe_filename(layer, feature)).is_file()]
+    if missing or not layers:
+        raise UsageError(f"no probe of {feature!r} for layer {missing[0] if missing else '?'} in {source!r}{hint}")
+    return tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
+
+
+def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> tuple:
     """`hold=[dx, dy, dz]`: on every steered layer, the probes of those features, whose readings the controller keeps
     within hold_tolerance of their unsteered values (the controller's multi-box QP with relative boxes)."""
     from vlactl.steering.activations import FEATURES
     from vlactl.steering.controller import MAX_PROBES
-    from vlactl.steering.probe_file import load_probe
-    from vlactl.steering.train_probes import probe_filename
 
-    features = list(cfg.hold or [])
+    features = list(dict.fromkeys(cfg.hold or []))
     if not features:
         return ()
-    if cfg.method != "control":
-        raise UsageError(f"hold={features} needs method=control, not {cfg.method!r}")
     allowed = [f for f in FEATURES if f != constraint.probe_feature]
     for feature in features:
         check_choice("hold feature", feature, allowed)
-    if len(set(features)) + 1 > MAX_PROBES:
+    if len(features) + 1 > MAX_PROBES:
         raise UsageError(f"hold={features}: at most {MAX_PROBES - 1} features can be held beside the constraint")
     if float(cfg.hold_tolerance) < 0:
         raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
-    run = resolve_path(cfg.probes)
-    paths = [run / "probes" / probe_filename(layer, f) for layer in layers for f in dict.fromkeys(features)]
-    missing = [path.name for path in paths if not path.is_file()]
-    if missing:
-        raise UsageError(f"hold={features}: no probe {missing[0]} in {cfg.probes!r}; train it with `vlactl "
-                         f"train-probes features=[...]` on the same activations")
-    return tuple(load_probe(path) for path in paths)
+    hint = "; train it with `vlactl train-probes features=[...]` on the same activations"
+    return tuple(p for feature in features for p in _load_probes(run, layers, feature, cfg.probes, hint))
 
 
 def _steered_layers(chosen, table: pd.DataFrame) -> list[str]:
