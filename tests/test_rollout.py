@@ -43,7 +43,7 @@ def test_tables_and_summary(rollout):
     saved = json.loads((out / "summary.json").read_text())
     assert saved == json.loads(json.dumps(second))
     assert saved["episodes"] == 2 and saved["per_task"]["0"]["successes"] == 0
-    assert saved["policy"] == {"needs_images": False, "chunk_size": 4, "replan_every": 2}
+    assert saved["policy"] == {"needs_images": False, "chunk_size": 4, "replan_every": 2, "gripper_levels": None}
     assert (out / "config.yaml").exists() and not (out / "videos").exists()
 
 

@@ -2,9 +2,12 @@
 
 import numpy as np
 import pandas as pd
+import pytest
+import torch
 
 from fixture_policy import FixedChunkPolicy
 from vlactl.env.libero_env import Observation
+from vlactl.models.registry import tiny_policy
 from vlactl.rollout import parts
 from vlactl.rollout.agents import VLAAgent
 from vlactl.rollout.episode import run_episode
@@ -53,6 +56,26 @@ def test_step_limit_and_hooks_replace_actions():
                          hooks=[close_gripper])
     assert not result.success and result.steps == 6 and seen == list(range(6))
     assert np.all(result.actions[:, 6] == 1.0)  # the hook's action, clipped to [-1, 1], is what ran and is logged
+
+
+def test_agent_executes_the_nearest_trained_gripper_command():
+    policy = FixedChunkPolicy()
+    policy.predict_action_chunk = lambda obs: torch.tensor([[0.0] * 6 + [g] for g in (0.04, -0.3, 0.6, -0.9)])[None]
+    policy.gripper_levels = (-1.0, 0.0, 1.0)
+    raw, snapped = VLAAgent(policy, snap_gripper=False), VLAAgent(policy)
+    for agent in (raw, snapped):
+        agent.reset(FakeEnv(), None)
+    obs = FakeEnv()._obs()
+    assert [raw.act(obs)[6] for _ in range(2)] == pytest.approx([0.04, -0.3])
+    assert [snapped.act(obs)[6] for _ in range(2)] == [0.0, 0.0]  # near "hold": hold, not a full-speed move
+    snapped.replan_every = 4
+    snapped._queue = []
+    assert [snapped.act(obs)[6] for _ in range(4)] == [0.0, 0.0, 1.0, -1.0]
+
+
+def test_embedded_models_declare_their_gripper_commands():
+    assert tiny_policy("hybrid").gripper_levels == (-1.0, 0.0, 1.0)
+    assert FixedChunkPolicy().gripper_levels is None  # other models: the command as predicted
 
 
 def test_steps_table_and_summary():

@@ -55,6 +55,10 @@ class VLA(ABC):
     name: str
     chunk_size: int = 1  # actions predicted per forward; a rollout executes `replan_every` of them
     replan_every: int = 1
+    # Gripper commands the policy was trained on; a rollout executes the nearest one. LIBERO's gripper moves by the
+    # *sign* of the command, so a regressed "hold" (0) that comes out as +-0.01 would open or close at full speed.
+    # None: the command as predicted.
+    gripper_levels: tuple[float, ...] | None = None
     device: torch.device = torch.device("cpu")
 
     # --- layers -------------------------------------------------------------------------------------------

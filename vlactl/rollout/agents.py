@@ -17,9 +17,10 @@ SCRIPTED = "scripted"
 
 
 class VLAAgent:
-    """Runs a `VLA`: predicts a chunk, executes its first `replan_every` actions, then predicts again."""
+    """Runs a `VLA`: predicts a chunk, executes its first `replan_every` actions, then predicts again. With
+    `snap_gripper`, each gripper command becomes the nearest of the policy's `gripper_levels` (if it declares any)."""
 
-    def __init__(self, vla, replan_every: int | None = None):
+    def __init__(self, vla, replan_every: int | None = None, snap_gripper: bool = True):
         self.vla = vla.eval()
         self.chunk_size = int(vla.chunk_size)
         self.replan_every = int(replan_every or vla.replan_every)
@@ -28,6 +29,8 @@ class VLAAgent:
                 f"replan_every must be in 1..{self.chunk_size} (the model's chunk size), got {self.replan_every}"
             )
         self.needs_images = bool(vla.needs_images)
+        levels = vla.gripper_levels if snap_gripper else None
+        self.gripper_levels = np.asarray(levels) if levels else None
         self._queue: list[np.ndarray] = []
         self._instruction = ""
 
@@ -49,7 +52,11 @@ class VLAAgent:
             )
             with torch.inference_mode():
                 chunk = self.vla.predict_action_chunk(batch)
-            self._queue = list(chunk[0, : self.replan_every].float().cpu().numpy())
+            actions = chunk[0, : self.replan_every].float().cpu().numpy()
+            if self.gripper_levels is not None:
+                nearest = np.abs(actions[:, -1:] - self.gripper_levels).argmin(-1)
+                actions[:, -1] = self.gripper_levels[nearest]
+            self._queue = list(actions)
         return self._queue.pop(0)
 
 
@@ -58,6 +65,7 @@ class ScriptedAgent:
 
     needs_images = False
     chunk_size = replan_every = 1
+    gripper_levels = None  # its commands are exact
 
     def __init__(self):
         from vlactl.expert.scripted import ScriptedExpert
@@ -71,7 +79,9 @@ class ScriptedAgent:
         return self.expert.act(obs)
 
 
-def load_agent(model: str, replan_every: int | None = None, load_policy: Callable | None = None):
+def load_agent(
+    model: str, replan_every: int | None = None, load_policy: Callable | None = None, snap_gripper: bool = True
+):
     """`scripted`, or a registry name / checkpoint path resolved by `load_policy` (the model registry by default)."""
     if model == SCRIPTED:
         return ScriptedAgent()
@@ -81,4 +91,4 @@ def load_agent(model: str, replan_every: int | None = None, load_policy: Callabl
         policy = load_policy(model)
     except UsageError as exc:  # the registry lists its own models; a rollout also takes the expert
         raise UsageError(f"{exc}, or {SCRIPTED}" if str(exc).startswith("unknown model") else str(exc)) from None
-    return VLAAgent(policy, replan_every)
+    return VLAAgent(policy, replan_every, snap_gripper)

@@ -36,8 +36,11 @@ class Steering:
 
 
 class ConstrainedAgent(VLAAgent):
-    def __init__(self, vla, constraint: Constraint, steering: Steering, replan_every: int | None = None):
-        super().__init__(vla, replan_every)
+    def __init__(
+        self, vla, constraint: Constraint, steering: Steering, replan_every: int | None = None,
+        snap_gripper: bool = True,
+    ):
+        super().__init__(vla, replan_every, snap_gripper)
         self.constraint, self.steering = constraint, steering
         self.readings: dict[int, dict] = {}
 

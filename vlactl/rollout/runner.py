@@ -29,9 +29,9 @@ from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
-SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "env", "constraint", "window", "method",
-                 "start_gripper", "hold", "hold_tolerance")
-BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0}  # what runs saved before a key existed did
+SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
+                 "method", "start_gripper", "hold", "hold_tolerance")
+BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False}  # what runs saved before a key existed did
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -158,8 +158,9 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     _check_same_run(cfg, out)
 
     # Load once here, before any worker starts: a bad model name fails in one line, and we learn its settings.
-    agent = load_agent(str(cfg.model), cfg.replan_every, load_policy)
-    policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every}
+    agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
+    policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,
+              "gripper_levels": None if agent.gripper_levels is None else agent.gripper_levels.tolist()}
     del agent
     ensure_writable_dir(out)
     save_config(cfg, out)
@@ -168,7 +169,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     todo = [key for key in keys if not parts.is_done(out, *key)]
     spec = RunSpec(
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
-        replan_every=cfg.replan_every, video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
+        replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
         load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
         start_gripper=gripper,
     )

@@ -27,6 +27,7 @@ class RunSpec:
     seed: int  # episode k runs with seed + k
     max_steps: int
     replan_every: int | None
+    snap_gripper: bool
     video: bool
     env: dict
     load_policy: Callable | None = None  # None: the model registry; tests pass a fixture loader
@@ -61,10 +62,12 @@ def init_worker(spec: RunSpec) -> None:
 def _agent():
     global _AGENT
     if _AGENT is None:  # loaded on first use, not in the initializer: a failing initializer respawns forever
-        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy)
+        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy, _SPEC.snap_gripper)
         constraint = parse_constraint(_SPEC.constraint, _SPEC.window)
         if constraint is not None and _SPEC.steering.method != "none":
-            _AGENT = ConstrainedAgent(_AGENT.vla, constraint, _SPEC.steering, _SPEC.replan_every)
+            _AGENT = ConstrainedAgent(
+                _AGENT.vla, constraint, _SPEC.steering, _SPEC.replan_every, _SPEC.snap_gripper
+            )
     return _AGENT
 
 

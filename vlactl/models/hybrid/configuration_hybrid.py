@@ -18,3 +18,4 @@ class HybridConfig(VLAConfig):
     flow_steps: int = 10  # Euler steps from noise (t=1) to actions (t=0)
     encode_time: float = 1.0  # the flow time at which `encode` runs the expert once, on zero noise
     noise_seed: int = 0  # sampling noise restarts from this seed at every reset(), so rollouts are reproducible
+    noise_scale: float = 1.0  # std of the noise sampling starts from; 0: one deterministic flow from the mean

@@ -108,6 +108,7 @@ class HybridPolicy(EmbeddedPolicy):
         cache, n_prefix = self._run_prefix(inputs)
         b = inputs["state"].shape[0]
         x = torch.randn(b, self.config.chunk_size, self.config.action_dim, generator=self._noise)
+        x = x * self.config.noise_scale
         steps = self.config.flow_steps
         for k in range(steps):
             t = torch.full((b,), 1.0 - k / steps)

@@ -17,6 +17,7 @@ class VLAConfig:
     action_dim: int = 7
     chunk_size: int = 10
     replan_every: int = 5
+    gripper_levels: tuple[float, ...] = (-1.0, 0.0, 1.0)  # the expert's: open, hold, close (empty: as predicted)
     # backbone (a Llama decoder)
     width: int = 128
     layers: int = 6

@@ -31,6 +31,7 @@ class EmbeddedPolicy(nn.Module, StackedLayers):
         self.processor = processor
         self.chunk_size = config.chunk_size
         self.replan_every = config.replan_every
+        self.gripper_levels = tuple(config.gripper_levels) or None
         self._masks: dict[str, dict[str, torch.Tensor]] = {}
 
     # --- layers ---------------------------------------------------------------------------------------------
