@@ -62,15 +62,13 @@ def test_agent_executes_the_nearest_trained_gripper_command():
     policy = FixedChunkPolicy()
     policy.predict_action_chunk = lambda obs: torch.tensor([[0.0] * 6 + [g] for g in (0.04, -0.3, 0.6, -0.9)])[None]
     policy.gripper_levels = (-1.0, 0.0, 1.0)
-    raw, snapped = VLAAgent(policy, snap_gripper=False), VLAAgent(policy)
-    for agent in (raw, snapped):
+    raw, snapped, whole = VLAAgent(policy, snap_gripper=False), VLAAgent(policy), VLAAgent(policy, replan_every=4)
+    for agent in (raw, snapped, whole):
         agent.reset(FakeEnv(), None)
     obs = FakeEnv()._obs()
     assert [raw.act(obs)[6] for _ in range(2)] == pytest.approx([0.04, -0.3])
     assert [snapped.act(obs)[6] for _ in range(2)] == [0.0, 0.0]  # near "hold": hold, not a full-speed move
-    snapped.replan_every = 4
-    snapped._queue = []
-    assert [snapped.act(obs)[6] for _ in range(4)] == [0.0, 0.0, 1.0, -1.0]
+    assert [whole.act(obs)[6] for _ in range(4)] == [0.0, 0.0, 1.0, -1.0]
 
 
 def test_embedded_models_declare_their_gripper_commands():

@@ -31,7 +31,8 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
                  "method", "start_gripper", "hold", "hold_tolerance")
-BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False}  # what runs saved before a key existed did
+# what runs saved before a key existed did
+BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -169,8 +170,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     todo = [key for key in keys if not parts.is_done(out, *key)]
     spec = RunSpec(
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
-        replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video), env=OmegaConf.to_container(cfg.env, resolve=True),
-        load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
+        replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
+        env=OmegaConf.to_container(cfg.env, resolve=True), load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
         start_gripper=gripper,
     )
     if cfg.judge_from:
