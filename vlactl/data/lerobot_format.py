@@ -15,6 +15,9 @@ IMAGE_KEY, WRIST_KEY = "observation.images.image", "observation.images.wrist_ima
 STATE_KEY, ACTION_KEY, ROBOT_STATE_KEY = "observation.state", "action", "observation.robot_state"
 
 
+WRITER_THREADS = 2
+
+
 def features(image_size: int) -> dict:
     img = {"dtype": "image", "shape": (image_size, image_size, 3), "names": ["height", "width", "channels"]}
     return {
@@ -40,7 +43,10 @@ def write_dataset(root: Path, repo_id: str, fps: int, image_size: int, episodes,
     root = Path(root)
     building = root.with_name(root.name + ".building")
     shutil.rmtree(building, ignore_errors=True)
-    ds = LeRobotDataset.create(repo_id, fps, features(image_size), root=building, robot_type="panda", use_videos=False)
+    # PNG encoding in writer threads overlaps the parquet work of the main thread: 8.6 s against 11.5 s for 3 episodes
+    # beside a 2-worker demo generation on 2 cores (more threads than cores gains nothing)
+    ds = LeRobotDataset.create(repo_id, fps, features(image_size), root=building, robot_type="panda", use_videos=False,
+                               image_writer_threads=WRITER_THREADS)
     for ep in episodes:
         n = len(ep["action"])
         for t in range(n):
@@ -59,6 +65,7 @@ def write_dataset(root: Path, repo_id: str, fps: int, image_size: int, episodes,
         if progress is not None:
             progress.update(1)
     ds.finalize()
+    ds.stop_image_writer()
     if root.exists():
         shutil.rmtree(root)
     os.replace(building, root)
