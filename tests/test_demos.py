@@ -91,3 +91,21 @@ def test_closed_approach_demonstration_keeps_the_gripper_closed_until_over_the_g
     assert (grip[:opened[0]] > 0).all()
     assert z[opened[0]] >= z[opened[0]:].min() + 0.03  # it opens above the grasp height, then goes down to grasp
     assert (grip[opened[0]:] > 0).any()
+
+
+def test_staging_refuses_episodes_from_other_code(tmp_path):
+    from vlactl.data.demos import CODE_NAME, code_fingerprint, staged_code
+    from vlactl.errors import UsageError
+
+    staging = tmp_path / "spatial.staging"
+    (staging / "task00").mkdir(parents=True)
+    assert staged_code(staging, adding=True) == code_fingerprint()  # empty: recorded
+    (staging / "task00" / "ep0000.npz").write_bytes(b"")
+    assert staged_code(staging, adding=True) == code_fingerprint()  # same code: resumes
+    (staging / CODE_NAME).write_text(json.dumps({"code": "0123456789abcdef"}))
+    with pytest.raises(UsageError, match="0123456789abcdef"):
+        staged_code(staging, adding=True)
+    assert staged_code(staging, adding=False) == "0123456789abcdef"  # rewriting the dataset alone is fine
+    (staging / CODE_NAME).unlink()
+    with pytest.raises(UsageError, match="unknown version"):
+        staged_code(staging, adding=True)

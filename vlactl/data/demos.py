@@ -4,10 +4,14 @@ Two phases, so an interruption never leaves a half-written episode and a re-run 
 1. each episode runs in a worker and is saved atomically to `<output_dir>.staging/` (successes as .npz, failures
    as a small .json), skipped on re-run if already there;
 2. the LeRobot v3 dataset is built from the staged successes into a sibling folder and renamed into place.
+
+A staging folder records which code made its episodes (a hash of the expert, environment and recording sources) and
+refuses new episodes from other code: a resumed run must not mix expert versions in one dataset.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import multiprocessing as mp
 import time
@@ -23,6 +27,7 @@ from vlactl.errors import UsageError, check_choice, check_non_negative, check_po
 from vlactl.io import atomic_path, atomic_write_json, ensure_writable_dir
 
 SUMMARY_NAME = "vlactl_demos.json"
+CODE_NAME = "code.json"  # in the staging folder: the code fingerprint its episodes were made with
 
 
 @dataclass(frozen=True)
@@ -53,6 +58,32 @@ def _done(staging: Path, task: int, k: int, kind: Kind) -> bool:
     return stem.with_suffix(".npz").exists() or stem.with_suffix(".json").exists()
 
 
+def code_fingerprint() -> str:
+    """Hash of the sources that decide what an episode holds: the expert, the environment and this recorder."""
+    package = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted([*(package / "expert").glob("*.py"), *(package / "env").glob("*.py"), Path(__file__).resolve()]):
+        h.update(path.name.encode() + path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def staged_code(staging: Path, adding: bool) -> str:
+    """The code fingerprint of the staging folder's episodes, recorded on first use. Adding episodes made by other
+    code is refused (a dataset of 2026-11-29 mixed several expert versions this way, docs/models.md)."""
+    mark = staging / CODE_NAME
+    current = code_fingerprint()
+    staged = json.loads(mark.read_text())["code"] if mark.exists() else None
+    has_episodes = any(staging.glob("task*/*"))
+    if staged is None and not has_episodes:
+        atomic_write_json(mark, {"code": current})
+        return current
+    if adding and staged != current:
+        made_by = f"code {staged}" if staged else "code of unknown version"
+        raise UsageError(f"{staging} holds episodes made by {made_by}, not by this code ({current}); new episodes "
+                         "would mix the two in one dataset: choose another output_dir=... or delete that folder")
+    return staged or "unknown"
+
+
 def run_demos(cfg: DictConfig) -> dict:
     from vlactl.env.suites import SUITES, resolve_tasks
 
@@ -71,6 +102,7 @@ def run_demos(cfg: DictConfig) -> dict:
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     work = [(cfg.suite, t, k, kind, seed, env_cfg, str(staging))
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
+    code = staged_code(staging, adding=bool(work))
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
@@ -94,7 +126,7 @@ def run_demos(cfg: DictConfig) -> dict:
 
     with tqdm(total=len(episodes), desc="writing LeRobot dataset", unit="ep") as wbar:
         write_dataset(out, f"vlactl/{cfg.suite}", cfg.fps, cfg.env.image_size, (_load(p) for p in episodes), wbar)
-    atomic_write_json(out / "meta" / SUMMARY_NAME, {"config": OmegaConf.to_container(cfg), **summary})
+    atomic_write_json(out / "meta" / SUMMARY_NAME, {"config": OmegaConf.to_container(cfg), "code": code, **summary})
     save_config(cfg, out)
     _print_summary(summary)
     return summary
