@@ -52,7 +52,7 @@ define train_policy
 endef
 policies: install
 	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=50 workers=2
-	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=10 recovery_episodes_per_task=25 workers=2 \
+	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=20 recovery_episodes_per_task=25 workers=2 \
 	  output_dir=data/demos/libero_spatial_recovery
 	$(foreach m,$(POLICIES),$(call train_policy,$(m)))
 
