@@ -171,8 +171,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     spec = RunSpec(
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
-        env=OmegaConf.to_container(cfg.env, resolve=True), load_policy=load_policy, constraint=str(cfg.constraint), window=cfg.window, steering=plan,
-        start_gripper=gripper,
+        env=OmegaConf.to_container(cfg.env, resolve=True), load_policy=load_policy, constraint=str(cfg.constraint),
+        window=cfg.window, steering=plan, start_gripper=gripper,
     )
     if cfg.judge_from:
         judge_run(cfg, constraint, plan, todo, out, gripper)
