@@ -97,15 +97,18 @@ def test_staging_refuses_episodes_from_other_code(tmp_path):
     from vlactl.data.demos import CODE_NAME, code_fingerprint, staged_code
     from vlactl.errors import UsageError
 
+    env = {"image_size": 128, "shadows": True}
     staging = tmp_path / "spatial.staging"
     (staging / "task00").mkdir(parents=True)
-    assert staged_code(staging, adding=True) == code_fingerprint()  # empty: recorded
+    assert staged_code(staging, env, adding=True) == code_fingerprint(env)  # empty: recorded
     (staging / "task00" / "ep0000.npz").write_bytes(b"")
-    assert staged_code(staging, adding=True) == code_fingerprint()  # same code: resumes
+    assert staged_code(staging, env, adding=True) == code_fingerprint(env)  # same code and settings: resumes
+    with pytest.raises(UsageError, match=code_fingerprint(env)):  # other render settings: other pixels
+        staged_code(staging, {**env, "image_size": 64}, adding=True)
     (staging / CODE_NAME).write_text(json.dumps({"code": "0123456789abcdef"}))
     with pytest.raises(UsageError, match="0123456789abcdef"):
-        staged_code(staging, adding=True)
-    assert staged_code(staging, adding=False) == "0123456789abcdef"  # rewriting the dataset alone is fine
+        staged_code(staging, env, adding=True)
+    assert staged_code(staging, env, adding=False) == "0123456789abcdef"  # rewriting the dataset alone is fine
     (staging / CODE_NAME).unlink()
     with pytest.raises(UsageError, match="unknown version"):
-        staged_code(staging, adding=True)
+        staged_code(staging, env, adding=True)

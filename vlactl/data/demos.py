@@ -5,8 +5,9 @@ Two phases, so an interruption never leaves a half-written episode and a re-run 
    as a small .json), skipped on re-run if already there;
 2. the LeRobot v3 dataset is built from the staged successes into a sibling folder and renamed into place.
 
-A staging folder records which code made its episodes (a hash of the expert, environment and recording sources) and
-refuses new episodes from other code: a resumed run must not mix expert versions in one dataset.
+A staging folder records what made its episodes (a hash of the expert, environment and recording sources and of the
+`env` settings) and refuses new episodes made otherwise: a resumed run must not mix expert versions or render settings
+in one dataset.
 """
 
 from __future__ import annotations
@@ -58,20 +59,23 @@ def _done(staging: Path, task: int, k: int, kind: Kind) -> bool:
     return stem.with_suffix(".npz").exists() or stem.with_suffix(".json").exists()
 
 
-def code_fingerprint() -> str:
-    """Hash of the sources that decide what an episode holds: the expert, the environment and this recorder."""
+def code_fingerprint(env_cfg: dict) -> str:
+    """Hash of what decides an episode's content: the sources of the expert, the environment and this recorder, and
+    the environment settings (image size, shadows, ...: they change the pixels)."""
     package = Path(__file__).resolve().parents[1]
     h = hashlib.sha256()
     for path in sorted([*(package / "expert").glob("*.py"), *(package / "env").glob("*.py"), Path(__file__).resolve()]):
         h.update(path.name.encode() + path.read_bytes())
+    h.update(json.dumps(env_cfg, sort_keys=True).encode())
     return h.hexdigest()[:16]
 
 
-def staged_code(staging: Path, adding: bool) -> str:
-    """The code fingerprint of the staging folder's episodes, recorded on first use. Adding episodes made by other
-    code is refused (a dataset of 2026-11-29 mixed several expert versions this way, docs/models.md)."""
+def staged_code(staging: Path, env_cfg: dict, adding: bool) -> str:
+    """The fingerprint (code_fingerprint) of the staging folder's episodes, recorded on first use. Adding episodes
+    made by other code or settings is refused (a dataset of 2026-11-29 mixed expert versions this way,
+    docs/models.md)."""
     mark = staging / CODE_NAME
-    current = code_fingerprint()
+    current = code_fingerprint(env_cfg)
     staged = json.loads(mark.read_text())["code"] if mark.exists() else None
     has_episodes = any(staging.glob("task*/*"))
     if staged is None and not has_episodes:
@@ -79,8 +83,9 @@ def staged_code(staging: Path, adding: bool) -> str:
         return current
     if adding and staged != current:
         made_by = f"code {staged}" if staged else "code of unknown version"
-        raise UsageError(f"{staging} holds episodes made by {made_by}, not by this code ({current}); new episodes "
-                         "would mix the two in one dataset: choose another output_dir=... or delete that folder")
+        raise UsageError(f"{staging} holds episodes made by {made_by}, not by this code and env settings ({current}); "
+                         "new episodes would mix the two in one dataset: choose another output_dir=... or delete that "
+                         "folder")
     return staged or "unknown"
 
 
@@ -102,7 +107,7 @@ def run_demos(cfg: DictConfig) -> dict:
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     work = [(cfg.suite, t, k, kind, seed, env_cfg, str(staging))
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
-    code = staged_code(staging, adding=bool(work))
+    code = staged_code(staging, env_cfg, adding=bool(work))
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
