@@ -112,3 +112,34 @@ def test_model_yaml_matches_config_class(name):
     assert yaml.pop("name") == name
     config = policy_class(name).config_class
     assert yaml == {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(config()).items()}
+
+
+@pytest.mark.parametrize("attention", ["causal", "bidirectional"])
+def test_autoregressive_decoding_matches_teacher_forcing(attention):
+    """Training and decoding see the same attention pattern: fed its own greedy chunk, the training forward
+    predicts every token of it."""
+    policy = tiny_policy("autoregressive", prompt_attention=attention)
+    inputs = policy.processor.observation(observation())
+    with torch.no_grad():
+        chunk = policy._sample(inputs)
+        ids = torch.round((chunk + 1) / 2 * (policy.config.bins - 1)).long()
+        batch = {**inputs, "actions": ids, "action_pad": torch.zeros(ids.shape[:2], dtype=torch.bool)}
+        _, stats = policy.forward(batch)
+    assert stats["token_accuracy"] == 1.0
+
+
+def test_autoregressive_prompt_attention_decides_what_the_prompt_sees():
+    """Under a prefix LM the first image token's output depends on the state token at the prompt's end."""
+    unchanged = {}
+    for attention in ("causal", "bidirectional"):
+        policy = tiny_policy("autoregressive", prompt_attention=attention)
+        first = []
+        hook = policy.backbone.norm.register_forward_hook(lambda module, args, out: first.append(out[:, 0]))
+        for shift in (0.0, 0.5):
+            inputs = policy.processor.observation(observation())
+            inputs["state"] = inputs["state"] + shift
+            with torch.no_grad():
+                policy._prefill(inputs)
+        hook.remove()
+        unchanged[attention] = torch.equal(*first)
+    assert unchanged == {"causal": True, "bidirectional": False}

@@ -109,14 +109,19 @@ class Run:
 
 
 def _starting_policy(cls, config, init_from: str):
-    """The checkpoint a fine-tuning run starts from; its architecture must be the one being trained."""
+    """The checkpoint a fine-tuning run starts from, rebuilt with the run's config and the checkpoint's weights and
+    normalisation. Settings that leave every weight's shape alone (how the prompt attends, chunk length, gripper
+    levels) may differ from the checkpoint's; the architecture may not."""
     from vlactl.models.registry import resolve_checkpoint
 
     start = cls.from_pretrained(resolve_checkpoint(init_from))
-    if start.config.to_dict() != config.to_dict():
+    policy = cls(config, cls.processor_class(config, start.processor.tokenizer, start.processor.stats))
+    try:
+        policy.load_state_dict(start.state_dict())
+    except RuntimeError:  # missing, unexpected or differently shaped weights
         raise UsageError(f"init_from={init_from!r} is a different {cls.name} architecture than model={cls.name} "
-                         "(conf/model/); train from scratch or override the model fields to match")
-    return start
+                         "(conf/model/); train from scratch or override the model fields to match") from None
+    return policy
 
 
 def run_train_policy(cfg: DictConfig) -> Path:
@@ -139,16 +144,14 @@ def run_train_policy(cfg: DictConfig) -> Path:
     np.random.seed(cfg.seed)
     torch.manual_seed(cfg.seed)
     start = None if resuming or not cfg.init_from else _starting_policy(cls, config, str(cfg.init_from))
-    if resuming:
-        processor = cls.processor_class.load(config, out / CHECKPOINT_DIR)
-    elif start is not None:  # fine-tuning keeps the normalisation the weights were trained with
-        processor = start.processor
+    if start is not None:  # fine-tuning keeps the normalisation the weights were trained with
+        policy = start
+    elif resuming:
+        policy = cls(config, cls.processor_class.load(config, out / CHECKPOINT_DIR))
     else:
         instructions = [frames.tasks[t] for t in np.unique(frames.task)]
-        processor = cls.processor_class.fit(config, instructions, frames.state, frames.action)
-    policy = cls(config, processor)
-    if start is not None:
-        policy.load_state_dict(start.state_dict())
+        policy = cls(config, cls.processor_class.fit(config, instructions, frames.state, frames.action))
+    processor = policy.processor
     optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, betas=(0.9, 0.95), weight_decay=cfg.weight_decay)
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps, cfg.min_lr_ratio)

@@ -14,3 +14,6 @@ class AutoregressiveConfig(VLAConfig):
     chunk_size: int = 5
     replan_every: int = 5
     bins: int = 256  # uniform bins over the normalised action range [-1, 1] (OpenVLA)
+    # How the prompt attends: "causal" (OpenVLA) or "bidirectional" within the prompt, the action tokens causal
+    # after it (a prefix LM, as π0-FAST); decoding is token by token either way.
+    prompt_attention: str = "causal"

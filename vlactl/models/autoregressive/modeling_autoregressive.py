@@ -14,7 +14,7 @@ from transformers import DynamicCache, LlamaModel
 from vlactl.models.autoregressive.configuration_autoregressive import AutoregressiveConfig
 from vlactl.models.autoregressive.processor_autoregressive import AutoregressiveProcessor
 from vlactl.models.parts.policy import EmbeddedPolicy
-from vlactl.models.parts.prefix import PrefixEmbedder, empty_masks, pad_masks
+from vlactl.models.parts.prefix import PrefixEmbedder, empty_masks, full_attention, pad_masks, prefix_lm_attention
 
 
 class AutoregressivePolicy(EmbeddedPolicy):
@@ -28,6 +28,10 @@ class AutoregressivePolicy(EmbeddedPolicy):
         self.backbone = LlamaModel(config.llama_config(vocab_size=self.n_words + config.bins))
         self.prefix = PrefixEmbedder(config, self.backbone.embed_tokens)
         self.head = nn.Linear(config.width, config.bins, bias=False)
+
+    @property
+    def _prefix_lm(self) -> bool:
+        return self.config.prompt_attention == "bidirectional"
 
     def _stacks(self):
         return {"backbone": self.backbone.layers}
@@ -44,7 +48,9 @@ class AutoregressivePolicy(EmbeddedPolicy):
         x, masks = self._prompt(batch)
         n_prompt = x.shape[1]
         self._masks["backbone"] = pad_masks(masks, ids.shape[1] - 1)
-        h = self.backbone(inputs_embeds=torch.cat([x, self._embed_bins(ids[:, :-1])], 1)).last_hidden_state
+        x = torch.cat([x, self._embed_bins(ids[:, :-1])], 1)
+        attention = prefix_lm_attention(x.shape[0], n_prompt, x.shape[1]) if self._prefix_lm else None
+        h = self.backbone(inputs_embeds=x, attention_mask=attention).last_hidden_state
         logits = self.head(h[:, n_prompt - 1 :])
         nll = F.cross_entropy(logits.flatten(0, 1), ids.flatten(), reduction="none").view_as(ids)
         keep = (~batch["action_pad"]).float().repeat_interleave(self.config.action_dim, dim=1)
@@ -56,7 +62,9 @@ class AutoregressivePolicy(EmbeddedPolicy):
         x, masks = self._prompt(inputs)
         self._masks["backbone"] = masks
         cache = DynamicCache()
-        h = self.backbone(inputs_embeds=x, past_key_values=cache, use_cache=True).last_hidden_state
+        attention = full_attention(x.shape[0], x.shape[1], x.shape[1]) if self._prefix_lm else None
+        h = self.backbone(inputs_embeds=x, attention_mask=attention, past_key_values=cache, use_cache=True)
+        h = h.last_hidden_state
         return h[:, -1], cache
 
     def _sample(self, inputs) -> torch.Tensor:

@@ -18,7 +18,7 @@ from transformers import DynamicCache, LlamaModel
 from vlactl.models.hybrid.configuration_hybrid import HybridConfig
 from vlactl.models.hybrid.processor_hybrid import HybridProcessor
 from vlactl.models.parts.policy import EmbeddedPolicy
-from vlactl.models.parts.prefix import PrefixEmbedder
+from vlactl.models.parts.prefix import PrefixEmbedder, full_attention
 
 
 def time_embedding(t: torch.Tensor, dim: int, min_period: float = 4e-3, max_period: float = 4.0) -> torch.Tensor:
@@ -27,11 +27,6 @@ def time_embedding(t: torch.Tensor, dim: int, min_period: float = 4e-3, max_peri
     period = min_period * (max_period / min_period) ** fraction
     angle = t[:, None] * (2 * math.pi / period)[None]
     return torch.cat([angle.sin(), angle.cos()], dim=-1)
-
-
-def full_attention(batch: int, queries: int, keys: int) -> torch.Tensor:
-    """An additive 4D mask that hides nothing: HF decoders take a 4D mask as is, so attention is bidirectional."""
-    return torch.zeros(batch, 1, queries, keys)
 
 
 class HybridPolicy(EmbeddedPolicy):

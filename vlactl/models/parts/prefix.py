@@ -36,6 +36,20 @@ class PrefixEmbedder(nn.Module):
         return x, masks
 
 
+def full_attention(batch: int, queries: int, keys: int) -> torch.Tensor:
+    """An additive 4D mask that hides nothing: HF decoders take a 4D mask as is, so attention is bidirectional."""
+    return torch.zeros(batch, 1, queries, keys)
+
+
+def prefix_lm_attention(batch: int, prompt: int, tokens: int) -> torch.Tensor:
+    """An additive 4D mask over `tokens` tokens of which the first `prompt` are the prompt: the prompt attends
+    bidirectionally within itself, every later token causally (PaliGemma's prefix-LM, as π0-FAST decodes)."""
+    allowed = torch.ones(tokens, tokens, dtype=torch.bool).tril()
+    allowed[:prompt, :prompt] = True
+    mask = torch.zeros(tokens, tokens).masked_fill(~allowed, torch.finfo(torch.float32).min)
+    return mask.expand(batch, 1, tokens, tokens)
+
+
 def pad_masks(masks: dict[str, torch.Tensor], extra: int) -> dict[str, torch.Tensor]:
     """Masks for a forward that runs `extra` tokens after the prompt: none of them is in any read-out set."""
     return {k: torch.cat([m, torch.zeros(m.shape[0], extra, dtype=torch.bool)], 1) for k, m in masks.items()}
