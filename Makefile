@@ -68,9 +68,13 @@ PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=lo
 PAPER_METHODS ?= none prompt control alpha meandiff
 PAPER_ARGS ?=
 # The controller steers the gripper with probes of its own: strongly regularised, at every action-expert layer
-# (docs/steering.md: the observability probes' minimum-norm push moves no action).
+# (docs/steering.md: the observability probes' minimum-norm push moves no action). Closing needs the logit pushed
+# well past 0 (margin 5); opening is what the policy does anyway, and the same margin there pushes where nothing
+# needs it (success 15% against 75% at margin 0, README), so gripper=open keeps the paper's box, p < 0.5.
 PAPER_STEER_PROBES ?= features=[gripper_action] logistic_l2=1e4
-PAPER_GRIPPER_CONTROL ?= probes=$(PAPER_DIR)/probes_steer layers=expert logit_margin=5
+PAPER_GRIPPER_CONTROL ?= probes=$(PAPER_DIR)/probes_steer layers=expert
+PAPER_CLOSED_MARGIN ?= 5
+PAPER_OPEN_MARGIN ?= 0
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
 paper:
 	$(BIN)/vlactl collect model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) every=4 output_dir=$(PAPER_DIR)/activations
@@ -83,7 +87,8 @@ paper:
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
 	  judge=$$([ $$m = none ] && [ $$c != gripper=closed ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
-	  steer=$$(case $$c/$$m in gripper=*/control) echo '$(PAPER_GRIPPER_CONTROL)';; esac); \
+	  steer=$$(case $$c/$$m in gripper=closed/control) echo '$(PAPER_GRIPPER_CONTROL) logit_margin=$(PAPER_CLOSED_MARGIN)';; \
+	    gripper=open/control) echo '$(PAPER_GRIPPER_CONTROL) logit_margin=$(PAPER_OPEN_MARGIN)';; esac); \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
 	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts \
 	    $$judge $$steer $(PAPER_ARGS) || exit 1; done; done
