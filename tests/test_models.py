@@ -128,6 +128,11 @@ def test_autoregressive_decoding_matches_teacher_forcing(attention):
     assert stats["token_accuracy"] == 1.0
 
 
+def test_autoregressive_prompt_attention_is_checked():
+    with pytest.raises(UsageError, match="prompt_attention 'sideways'; allowed: causal, bidirectional"):
+        tiny_policy("autoregressive", prompt_attention="sideways")
+
+
 def test_autoregressive_prompt_attention_decides_what_the_prompt_sees():
     """Under a prefix LM the first image token's output depends on the state token at the prompt's end."""
     unchanged = {}

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from vlactl.errors import check_choice
 from vlactl.models.parts.config import VLAConfig
+
+PROMPT_ATTENTIONS = ("causal", "bidirectional")
 
 
 @dataclass(frozen=True)
@@ -17,3 +20,6 @@ class AutoregressiveConfig(VLAConfig):
     # How the prompt attends: "causal" (OpenVLA) or "bidirectional" within the prompt, the action tokens causal
     # after it (a prefix LM, as π0-FAST); decoding is token by token either way.
     prompt_attention: str = "causal"
+
+    def __post_init__(self):
+        check_choice("model.prompt_attention", self.prompt_attention, PROMPT_ATTENTIONS)
