@@ -69,8 +69,8 @@ PAPER_METHODS ?= none prompt control alpha meandiff
 PAPER_ARGS ?=
 # The controller steers the gripper with probes of its own: strongly regularised, at every action-expert layer
 # (docs/steering.md: the observability probes' minimum-norm push moves no action). Closing needs the logit pushed
-# well past 0 (margin 5); opening is what the policy does anyway, and the same margin there pushes where nothing
-# needs it (success 15% against 75% at margin 0, README), so gripper=open keeps the paper's box, p < 0.5.
+# well past 0 (margin 5); opening is what the policy does anyway, and the same margin there costs the task
+# (success 15% against 75% at margin 0, README), so gripper=open keeps the paper's box, p < 0.5.
 PAPER_STEER_PROBES ?= features=[gripper_action] logistic_l2=1e4
 PAPER_GRIPPER_CONTROL ?= probes=$(PAPER_DIR)/probes_steer layers=expert
 PAPER_CLOSED_MARGIN ?= 5
