@@ -130,6 +130,7 @@ def test_mean_difference_pushes_by_alpha_along_its_direction(probes, tmp_path):
     steps = pd.read_parquet(tmp_path / "random_libero_spatial_gripper-open_meandiff" / "steps.parquet")
     steered = steps.dropna(subset=["u_norm"])
     assert steered["t"].tolist() == [0, 2] and np.allclose(steered["u_norm"], 5.0, rtol=1e-4)
+    assert (steered["u_norm_all"] >= steered["u_norm"] - 1e-6).all() and (steered["active_share"] == 1.0).all()
 
 
 def test_default_layer_is_the_best_one_that_can_move_the_actions(probes, tmp_path):

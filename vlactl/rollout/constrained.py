@@ -18,7 +18,10 @@ from vlactl.steering.steer import Steerer
 
 METHODS = ("none", "prompt", "control", "alpha", "meandiff")
 STEERING = ("control", "alpha", "meandiff")
-READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active")  # per step with a steered prediction
+# Per step with a steered prediction: the reading at the first forward through the first steered layer, and the
+# push over every steered layer and forward of that prediction (a hybrid steers each expert layer at every denoising
+# step): its summed norm and the share of those forwards it acted in.
+READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share")
 
 
 @dataclass(frozen=True)
@@ -66,5 +69,7 @@ class ConstrainedAgent(VLAAgent):
         with Steerer(self.vla, self._boxes, method=method, alpha=alpha, directions=self.steering.directions) as steerer:
             action = super().act(obs)
         first = steerer.log[0]  # the first forward through the first steered layer (row 0: one observation)
-        self.readings[t] = dict(zip(READING_COLUMNS, (first["before"], first["after"], first["u_norm"], first["active"])))
+        pushes = [e["u_norm"] for e in steerer.log if e["row"] == 0 and e["feature"] == first["feature"]]  # one per forward
+        self.readings[t] = dict(zip(READING_COLUMNS, (first["before"], first["after"], first["u_norm"], first["active"],
+                                                      sum(pushes), sum(u > 0 for u in pushes) / len(pushes))))
         return action
