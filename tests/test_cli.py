@@ -25,7 +25,11 @@ def test_help_lists_the_pipeline():
         (["demos", "tasks=[99]"], "99"),
         (["demos", "output_dir=/proc/vlactl-cannot-write"], "/proc/vlactl-cannot-write"),
         (["demos", "suite"], "suite"),
-        (["demos", "no_such_key=3"], "no_such_key"),
+        (["demos", "no_such_key=3"], "unknown setting 'no_such_key' in conf/demos.yaml; known: "),
+        (["demos", "episodes_per_task=abc"], "episodes_per_task='abc': expected an integer"),
+        (["rollout", "model=random", "episodes_per_task=2.5"], "episodes_per_task='2.5': expected an integer"),
+        (["train-probes", "activations=x", "test_fraction=most"], "test_fraction='most': expected a number"),
+        (["train-policy", "model=autoregressive", "model.widht=64"], "unknown setting 'model.widht'"),
         (["tasks", "--suite", "libero_nope"], "libero_nope"),
     ],
 )

@@ -8,7 +8,7 @@ from pathlib import Path
 from hydra import compose, initialize_config_dir
 from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf, open_dict
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf.errors import ConfigAttributeError, OmegaConfBaseException
 
 from vlactl.errors import UsageError
 
@@ -22,14 +22,54 @@ def load_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
     for item in overrides:
         if "=" not in item:
             raise UsageError(f"malformed override {item!r}; expected key=value, e.g. suite=libero_object")
+    cfg = _compose(stage, overrides)
+    # Hydra takes `frames=abc` as a string; caught here, it would otherwise fail deep inside the run. The defaults
+    # are those of the config groups the overrides choose (`model=autoregressive` in train-policy).
+    groups = {path.name for path in CONF_DIR.iterdir() if path.is_dir()}
+    defaults = _compose(stage, [item for item in overrides if _key(item) in groups])
+    for item in overrides:
+        key, value = _key(item), item.split("=", 1)[1]
+        default, given = OmegaConf.select(defaults, key), OmegaConf.select(cfg, key)
+        if given is not None and not _same_kind(default, given):
+            kind = {bool: "true or false", int: "an integer", float: "a number"}[type(default)]
+            raise UsageError(f"{key}={value!r}: expected {kind} (default: {default})")
+    return cfg
+
+
+def _compose(stage: str, overrides: list[str]) -> DictConfig:
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name=stage, overrides=overrides)
         OmegaConf.resolve(cfg)
     except (HydraException, OmegaConfBaseException) as exc:
+        cause = exc.__cause__
+        if isinstance(cause, ConfigAttributeError) and cause.full_key and overrides:
+            parent, _, _ = cause.full_key.rpartition(".")
+            node = _compose(stage, [item for item in overrides if _key(item) != cause.full_key])
+            node = OmegaConf.select(node, parent) if parent else node
+            if isinstance(node, DictConfig):
+                raise UsageError(
+                    f"unknown setting {cause.full_key!r} in conf/{stage}.yaml; known: {', '.join(node)}"
+                ) from None
         first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise UsageError(f"bad override in {overrides}: {first_line}") from None
     return cfg
+
+
+def _key(item: str) -> str:
+    return item.split("=", 1)[0].lstrip("+~")
+
+
+def _same_kind(default, given) -> bool:
+    """Whether an override keeps a scalar default's type (an integer where a number is expected is fine); defaults
+    that are strings, lists or null take anything."""
+    if isinstance(default, bool):
+        return isinstance(given, bool)
+    if isinstance(default, int):
+        return isinstance(given, int) and not isinstance(given, bool)
+    if isinstance(default, float):
+        return isinstance(given, (int, float)) and not isinstance(given, bool)
+    return True
 
 
 def quote_values(overrides: list[str] | None, *keys: str) -> list[str]:
