@@ -1,5 +1,8 @@
 """LiberoEnv: images, determinism, on-demand rendering, errors. One shared env (~5 s to build) plus one more."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -106,3 +109,14 @@ def test_cluster_faces_keeps_coarse_meshes_and_collapses_fine_ones():
     assert all(len(set(f)) == 3 for f in snapped[keep])
     keep, _ = _cluster_faces(vert, face, 1.0)  # one cell: everything collapses
     assert len(keep) == 0
+
+
+def test_torchvision_imports_after_a_render_context():
+    """triton (loaded by `import torchvision` through torch._dynamo) segfaulted once Mesa had made a GL context."""
+    code = (
+        "from vlactl.env.libero_env import LiberoEnv\n"
+        f"with LiberoEnv({SUITE!r}, {TASK}, render=True) as env:\n    env.reset(0, render=True)\n"
+        "import torchvision\n"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
