@@ -26,8 +26,11 @@ def load_config(stage: str, overrides: list[str] | None = None) -> DictConfig:
     # Hydra takes `frames=abc` as a string; caught here, it would otherwise fail deep inside the run. The defaults
     # are those of the config groups the overrides choose (`model=autoregressive` in train-policy).
     groups = {path.name for path in CONF_DIR.iterdir() if path.is_dir()}
+    settings = [item for item in overrides if _key(item) not in groups]
+    if not settings:
+        return cfg
     defaults = _compose(stage, [item for item in overrides if _key(item) in groups])
-    for item in overrides:
+    for item in settings:
         key, value = _key(item), item.split("=", 1)[1]
         default, given = OmegaConf.select(defaults, key), OmegaConf.select(cfg, key)
         if given is not None and not _same_kind(default, given):
