@@ -56,7 +56,8 @@ def special_run(tmp_path_factory):
     summary = run_demos(load_config("demos", ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}",
                                               "episodes_per_task=0", "recovery_episodes_per_task=1",
                                               "closed_start_episodes_per_task=1",
-                                              "closed_approach_episodes_per_task=1"]))
+                                              "closed_approach_episodes_per_task=1",
+                                              "noisy_episodes_per_task=1"]))
     return out.with_name("special.staging") / "task00", summary
 
 
@@ -91,6 +92,23 @@ def test_closed_approach_demonstration_keeps_the_gripper_closed_until_over_the_g
     assert (grip[:opened[0]] > 0).all()
     assert z[opened[0]] >= z[opened[0]:].min() + 0.03  # it opens above the grasp height, then goes down to grasp
     assert (grip[opened[0]:] > 0).any()
+
+
+def _motion_explained_by_labels(path) -> float:
+    """R^2 of a linear fit of the hand's per-step motion on the recorded x, y, z commands."""
+    with np.load(path) as ep:
+        motion, labels = np.diff(ep["robot_state"][:, :3], axis=0), ep["action"][:-1, :3]
+    inputs = np.c_[labels, np.ones(len(labels))]
+    resid = motion - inputs @ np.linalg.lstsq(inputs, motion, rcond=None)[0]
+    return 1 - (resid**2).sum() / ((motion - motion.mean(0)) ** 2).sum()
+
+
+def test_noisy_demonstration_executes_noise_but_records_the_expert(demo_run, special_run):
+    staged, summary = special_run
+    assert summary["noisy"]["succeeded"] == 1
+    ordinary = demo_run[0].parent / "spatial.staging" / "task00" / "ep0000.npz"  # the same initial state
+    # the executed noise moves the hand in ways its labels do not explain (0.85 against 0.91 measured)
+    assert _motion_explained_by_labels(staged / "noi0000.npz") < _motion_explained_by_labels(ordinary) - 0.03
 
 
 def test_staging_refuses_episodes_from_other_code(tmp_path):

@@ -46,7 +46,8 @@ ORDINARY = Kind("episodes_per_task", "ep", 0, "")
 RECOVERY = Kind("recovery_episodes_per_task", "rec", 100_000, "recovery")
 CLOSED_START = Kind("closed_start_episodes_per_task", "cls", 200_000, "closed_start")
 CLOSED_APPROACH = Kind("closed_approach_episodes_per_task", "cla", 300_000, "closed_approach")
-KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH)
+NOISY = Kind("noisy_episodes_per_task", "noi", 400_000, "noisy")
+KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY)
 CLOSED_STEPS = (5, 20)  # closed-start episodes hold the gripper closed this many steps (drawn per episode)
 
 
@@ -95,6 +96,7 @@ def run_demos(cfg: DictConfig) -> dict:
     check_choice("suite", cfg.suite, SUITES)
     for kind in KINDS:
         check_non_negative(kind.count, cfg[kind.count])
+    check_non_negative("action_noise", cfg.action_noise)
     check_positive("workers", cfg.workers)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     out = resolve_path(cfg.output_dir)
@@ -105,6 +107,8 @@ def run_demos(cfg: DictConfig) -> dict:
     everything = [(t, k, kind, cfg.seed + kind.seed_offset + k) for kind in KINDS for t in tasks
                   for k in range(cfg[kind.count])]
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
+    # The noise scale decides the noisy episodes' content: a resumed run with another scale must not mix them.
+    env_cfg["action_noise"] = float(cfg.action_noise)
     work = [(cfg.suite, t, k, kind, seed, env_cfg, str(staging))
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
     code = staged_code(staging, env_cfg, adding=bool(work))
@@ -197,6 +201,8 @@ def _generate_episode(job) -> bool:
     from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
     suite, task, k, kind, seed, env_cfg, staging = job
+    env_cfg = dict(env_cfg)
+    action_noise = env_cfg.pop("action_noise")
     env = _env(suite, task, env_cfg)
     init_state = k % env.n_init_states
     # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
@@ -214,6 +220,9 @@ def _generate_episode(job) -> bool:
     closed_steps = 0
     if kind == CLOSED_START:
         closed_steps = int(np.random.default_rng(seed).integers(*CLOSED_STEPS, endpoint=True))
+    # A noisy demonstration executes the expert's translation commands plus Gaussian noise while recording the
+    # expert's own commands (DART): the states spread around the expert's path, each labelled with the way back.
+    noise_rng = np.random.default_rng(seed) if kind == NOISY else None
     start = time.time()
     obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps or closed_approach else "open")
     expert.reset(env, obs)
@@ -224,6 +233,9 @@ def _generate_episode(job) -> bool:
     for t in range(env.max_steps):
         action = expert.act(obs)
         executed = np.concatenate([action[:-1], [CLOSE]]) if t < closed_steps else action
+        if noise_rng is not None:
+            executed = executed.copy()
+            executed[:3] = np.clip(executed[:3] + noise_rng.normal(0.0, action_noise, 3), -1.0, 1.0)
         recording = recording or expert.phase == "lift"
         if recording:
             frames["image"].append(obs.images["image"])
