@@ -107,11 +107,11 @@ def run_demos(cfg: DictConfig) -> dict:
     everything = [(t, k, kind, cfg.seed + kind.seed_offset + k) for kind in KINDS for t in tasks
                   for k in range(cfg[kind.count])]
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
-    # The noise scale decides the noisy episodes' content: a resumed run with another scale must not mix them.
-    env_cfg["action_noise"] = float(cfg.action_noise)
-    work = [(cfg.suite, t, k, kind, seed, env_cfg, str(staging))
+    noise = float(cfg.action_noise)
+    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging))
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
-    code = staged_code(staging, env_cfg, adding=bool(work))
+    # The noise scale decides the noisy episodes' content: a resumed run with another scale must not mix them.
+    code = staged_code(staging, {**env_cfg, "action_noise": noise}, adding=bool(work))
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
@@ -200,9 +200,7 @@ def _generate_episode(job) -> bool:
     from vlactl.env.features import speeds
     from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
-    suite, task, k, kind, seed, env_cfg, staging = job
-    env_cfg = dict(env_cfg)
-    action_noise = env_cfg.pop("action_noise")
+    suite, task, k, kind, seed, env_cfg, action_noise, staging = job
     env = _env(suite, task, env_cfg)
     init_state = k % env.n_init_states
     # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
