@@ -118,7 +118,7 @@ def test_model_yaml_matches_config_class(name):
 def test_autoregressive_decoding_matches_teacher_forcing(attention):
     """Training and decoding see the same attention pattern: fed its own greedy chunk, the training forward
     predicts every token of it."""
-    policy = tiny_policy("autoregressive", prompt_attention=attention)
+    policy = tiny_policy("autoregressive", prompt_attention=attention, decode="argmax")
     inputs = policy.processor.observation(observation())
     with torch.no_grad():
         chunk = policy._sample(inputs)
@@ -126,6 +126,16 @@ def test_autoregressive_decoding_matches_teacher_forcing(attention):
         batch = {**inputs, "actions": ids, "action_pad": torch.zeros(ids.shape[:2], dtype=torch.bool)}
         _, stats = policy.forward(batch)
     assert stats["token_accuracy"] == 1.0
+
+
+def test_autoregressive_median_decode_takes_the_median_bin():
+    """Mass 0.3 on bin 10, 0.25 on bin 20, 0.45 on bin 200: argmax picks 200, the median 20."""
+    probs = torch.full((1, 256), 1e-9)
+    probs[0, [10, 20, 200]] = torch.tensor([0.3, 0.25, 0.45])
+    picks = {d: int(tiny_policy("autoregressive", decode=d)._pick(probs.log())) for d in ("argmax", "median")}
+    assert picks == {"argmax": 200, "median": 20}
+    with pytest.raises(UsageError, match="decode 'mean'; allowed: argmax, median"):
+        tiny_policy("autoregressive", decode="mean")
 
 
 def test_autoregressive_prompt_attention_is_checked():

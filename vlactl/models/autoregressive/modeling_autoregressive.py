@@ -73,12 +73,18 @@ class AutoregressivePolicy(EmbeddedPolicy):
         self._masks["backbone"] = empty_masks(b, 1)  # decode steps hold no prompt token: nothing read or written
         ids = []
         for k in range(self.config.chunk_size * self.config.action_dim):
-            ids.append(self.head(h).argmax(-1))
+            ids.append(self._pick(self.head(h)))
             if k + 1 < self.config.chunk_size * self.config.action_dim:
                 step = self._embed_bins(ids[-1])[:, None]
                 h = self.backbone(inputs_embeds=step, past_key_values=cache, use_cache=True).last_hidden_state[:, -1]
         chunk = torch.stack(ids, 1).view(b, self.config.chunk_size, self.config.action_dim)
         return self.processor.bin_centers(chunk)
+
+    def _pick(self, logits: torch.Tensor) -> torch.Tensor:
+        """[B, bins] -> the bin each row decodes to."""
+        if self.config.decode == "median":
+            return (logits.softmax(-1).cumsum(-1) < 0.5).sum(-1).clamp(max=self.config.bins - 1)
+        return logits.argmax(-1)
 
     def _encode(self, inputs) -> None:
         self._prefill(inputs)
