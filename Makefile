@@ -34,26 +34,34 @@ demo: install
 	$(BIN)/vlactl rollout model=hybrid suite=libero_spatial tasks=[0,1] episodes_per_task=2 workers=2 --video \
 	  output_root=outputs/demo run_name=hybrid_libero_spatial
 
-# Rebuild the shipped embedded models from scratch: the full libero_spatial demo set, then each model trained with
-# its own config (conf/model/<name>.yaml), then, for a model with CONTINUE_<name>, a second run from that checkpoint,
-# and the last checkpoint copied into data/policies/. The autoregressive model trains a second cosine cycle (one
-# 8,000-step cycle left its loss still falling); the hybrid is fine-tuned on recovery demonstrations (docs/models.md).
-# Every step resumes where it stopped when re-run.
+# Rebuild the shipped embedded models from scratch: the libero_spatial demo sets, then each model trained with its
+# own config (conf/model/<name>.yaml) on DATASET_<name>, then, for a model with CONTINUE_<name>, a second run from
+# that checkpoint, and the last checkpoint copied into data/policies/. The autoregressive model learns from the 50
+# ordinary episodes per task plus 30 noise-injected (DART) ones and trains a second cosine cycle; the hybrid is
+# fine-tuned on recovery demonstrations (docs/models.md). Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
-CONTINUE_autoregressive ?= dataset=data/demos/libero_spatial steps=7000 lr=2e-4 warmup_steps=200
+DATASET_hybrid ?= data/demos/libero_spatial
+DATASET_autoregressive ?= data/demos/libero_spatial_noisy
+CONTINUE_autoregressive ?= dataset=data/demos/libero_spatial_noisy steps=7000 lr=2e-4 warmup_steps=200
 CONTINUE_hybrid ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 define train_policy
-	$(BIN)/vlactl train-policy model=$(1) dataset=data/demos/libero_spatial output_dir=outputs/policies/$(1)
+	$(BIN)/vlactl train-policy model=$(1) dataset=$(DATASET_$(1)) output_dir=outputs/policies/$(1)
 	$(if $(CONTINUE_$(1)),$(BIN)/vlactl train-policy model=$(1) init_from=outputs/policies/$(1)/checkpoint \
 	  $(CONTINUE_$(1)) output_dir=outputs/policies/$(1)-continued)
 	rm -rf data/policies/$(1).new && cp -r outputs/policies/$(1)$(if $(CONTINUE_$(1)),-continued)/checkpoint \
 	  data/policies/$(1).new && rm -rf data/policies/$(1) && mv data/policies/$(1).new data/policies/$(1)
 
 endef
+# A set that extends data/demos/libero_spatial starts from hard links to its staged episodes, so the sets share their
+# ordinary episodes (as the measured ones do) and only the extra kinds are simulated.
+define extended_demos
+	mkdir -p $(1).staging && cp -aln data/demos/libero_spatial.staging/. $(1).staging/
+	$(BIN)/vlactl demos suite=libero_spatial $(2) workers=2 output_dir=$(1)
+endef
 policies: install
 	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=50 workers=2
-	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=20 recovery_episodes_per_task=25 workers=2 \
-	  output_dir=data/demos/libero_spatial_recovery
+	$(call extended_demos,data/demos/libero_spatial_recovery,episodes_per_task=20 recovery_episodes_per_task=25)
+	$(call extended_demos,data/demos/libero_spatial_noisy,episodes_per_task=50 noisy_episodes_per_task=30)
 	$(foreach m,$(POLICIES),$(call train_policy,$(m)))
 
 # The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
