@@ -42,7 +42,7 @@ demo: install
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
-CONTINUE_autoregressive ?= dataset=data/demos/libero_spatial_noisy steps=7000 lr=2e-4 warmup_steps=200
+CONTINUE_autoregressive ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
 CONTINUE_hybrid ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 define train_policy
 	$(BIN)/vlactl train-policy model=$(1) dataset=$(DATASET_$(1)) output_dir=outputs/policies/$(1)
