@@ -84,11 +84,13 @@ PAPER_GRIPPER_CONTROL ?= probes=$(PAPER_DIR)/probes_steer layers=expert
 PAPER_CLOSED_MARGIN ?= 5
 PAPER_OPEN_MARGIN ?= 0
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
+PAPER_PROBE_ARGS ?=  # train-probes options for both probe sets, e.g. device=cuda
 paper:
 	$(BIN)/vlactl collect model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) every=4 output_dir=$(PAPER_DIR)/activations
-	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes
+	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes $(PAPER_PROBE_ARGS)
 	$(BIN)/vlactl plot probes run_dir=$(PAPER_DIR)/probes
-	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes_steer $(PAPER_STEER_PROBES)
+	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes_steer \
+	  $(PAPER_STEER_PROBES) $(PAPER_PROBE_ARGS)
 	$(BIN)/vlactl sweep model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes output_dir=$(PAPER_DIR)/sweep
 	$(BIN)/vlactl plot sweep run_dir=$(PAPER_DIR)/sweep
 	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes

@@ -1,6 +1,8 @@
 """Probe fitting on synthetic activations with features planted in known layers: recovered where planted, absent
 elsewhere; the batched solvers agree with direct ones; the split never shares an episode."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -137,3 +139,38 @@ def test_settings_default_grid_is_used(planted):
     *_, probes, _ = planted
     assert set(probes.lam[:, :3].flatten().tolist()) <= set(ProbeSettings().ridge_grid)
     assert bool(probes.cv_r2[:, 3].isnan().all()) and not bool(probes.cv_r2[:, :3].isnan().any())
+
+
+class _FactoriesWithoutDevice(torch.overrides.TorchFunctionMode):
+    """Records tensor factories called without an explicit device: on a GPU those would land on the CPU."""
+
+    FACTORIES = {torch.zeros, torch.ones, torch.full, torch.empty, torch.tensor, torch.as_tensor, torch.arange,
+                 torch.eye, torch.rand, torch.randn, torch.randperm, torch.linspace}
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        if func in self.FACTORIES and "device" not in kwargs:
+            self.calls.append(func.__name__)
+        return func(*args, **kwargs)
+
+
+@pytest.mark.parametrize("width", [24, 1300])  # 1300 > 1200 training rows: the kernel form
+def test_fitting_creates_every_tensor_on_the_activations_device(planted, width):
+    # CI has no GPU; a factory without device= is what breaks `train-probes device=cuda`, so catch it here
+    data, y, train, _, folds, _, _ = planted
+    x = torch.from_numpy(data.x) if width == 24 else torch.randn(2, data.x.shape[1], width)
+    with _FactoriesWithoutDevice() as mode:
+        fit_probes(x, y, [REGRESSION] * 3 + [LOGISTIC], train, folds)
+    assert mode.calls == []
+
+
+def test_probes_move_between_devices_whole(planted):
+    probes = planted[5]
+    moved = probes.to("meta")  # a device every machine has
+    tensors = [f.name for f in dataclasses.fields(probes) if isinstance(getattr(probes, f.name), torch.Tensor)]
+    assert len(tensors) == 6 and all(getattr(moved, name).is_meta for name in tensors)
+    assert moved.kinds == probes.kinds and not probes.weight.is_meta

@@ -70,6 +70,8 @@ def test_train_probes_then_plot(acts, tmp_path, monkeypatch, capsys):
     (["train-probes", "@ACTS", "frames=elbow > 1"], "elbow"),
     (["train-probes", "@ACTS", "frames=frame_index + 1"], "true/false"),
     (["train-probes", "@ACTS", "frames=frame_index > 1000"], "no frame"),
+    (["train-probes", "@ACTS", "device=tpu"], "tpu"),
+    (["train-probes", "@ACTS", "device=cuda:99"], "cuda:99"),
     (["plot", "probes"], "run_dir="),
     (["plot", "probes", "run_dir=/nowhere"], "/nowhere"),
 ])

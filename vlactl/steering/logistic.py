@@ -36,23 +36,25 @@ def fit_logistic(
     last step is then taken with the old Hessian), and finished layers drop out of the batch.
     """
     n_layers, n, p = z.shape
+    dev = z.device
     y = y.to(z.dtype)
     prior = y.mean().clamp(1e-6, 1 - 1e-6)
-    w = torch.zeros(n_layers, p, dtype=torch.float64)
-    b = torch.full((n_layers,), float(torch.log(prior / (1 - prior))), dtype=torch.float64)
-    s = torch.full((n_layers, n), float(b[0]), dtype=z.dtype)
-    penalty = torch.diag(torch.tensor([float(l2)] * p + [0.0], dtype=torch.float64))
-    hess = torch.zeros(n_layers, p + 1, p + 1, dtype=torch.float64)  # per layer, its latest Hessian,
-    state = torch.zeros(n_layers, dtype=torch.int8)  # which is 0: not built yet, 1: from an earlier point, 2: current
+    w = torch.zeros(n_layers, p, dtype=torch.float64, device=dev)
+    b = torch.full((n_layers,), float(torch.log(prior / (1 - prior))), dtype=torch.float64, device=dev)
+    s = torch.full((n_layers, n), float(b[0]), dtype=z.dtype, device=dev)
+    penalty = torch.diag(torch.tensor([float(l2)] * p + [0.0], dtype=torch.float64, device=dev))
+    hess = torch.zeros(n_layers, p + 1, p + 1, dtype=torch.float64, device=dev)  # per layer, its latest Hessian,
+    state = [0] * n_layers  # which is 0: not built yet, 1: from an earlier point, 2: current
     if gram is not None:
-        hess, state[:] = gram * float(prior * (1 - prior)) + penalty, 2
-    trial = torch.tensor(STEP_LENGTHS, dtype=torch.float64)
-    scratch = torch.empty(n, p, dtype=z.dtype)  # reused: a fresh [n, p] tensor per Hessian costs as much as the product
+        hess, state = gram * float(prior * (1 - prior)) + penalty, [2] * n_layers
+    trial = torch.tensor(STEP_LENGTHS, dtype=torch.float64, device=dev)
+    # reused: a fresh [n, p] tensor per Hessian costs as much as the product
+    scratch = torch.empty(n, p, dtype=z.dtype, device=dev)
     moving = list(range(n_layers))
     for _ in range(steps):
         if not moving:
             break
-        idx = torch.tensor(moving)
+        idx = torch.tensor(moving, device=dev)
         sm, wm = s[idx], w[idx]
         prob = torch.sigmoid(sm)
         resid = prob - y
@@ -65,7 +67,7 @@ def fit_logistic(
             delta[built] = -_spd_solve(hess[idx[built]], grad[built])
         decrement = -(grad * delta).sum(-1)
         # a new Hessian unless the layer has its current one, or its old one already gives the last step
-        last = decrement < tol * n
+        last = (decrement < tol * n).tolist()
         renew = [i for i, layer in enumerate(moving) if state[layer] == 0 or state[layer] == 1 and not last[i]]
         for i in renew:
             hess[moving[i]] = _weighted_gram(z[moving[i]], prob[i] * (1 - prob[i]), scratch) + penalty
@@ -77,7 +79,8 @@ def fit_logistic(
         cand = _objective(sm + trial[:, None, None].to(z.dtype) * ds, y, wm + trial[:, None, None] * dw, l2)
         t = trial[cand.argmin(0)]  # [M] the best trial length per layer
         w[idx], b[idx], s[idx] = wm + t[:, None] * dw, b[idx] + t * db, sm + t[:, None].to(z.dtype) * ds
-        state[idx] = 1  # every moving layer now holds a Hessian, from before this step
+        for layer in moving:
+            state[layer] = 1  # every moving layer now holds a Hessian, from before this step
         moving = [layer for layer, dec in zip(moving, decrement.tolist()) if dec >= tol * n]
     return w, b
 

@@ -12,7 +12,7 @@ in that span, so the reduced problem is exact and costs n^2 d instead of n d^2.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -79,6 +79,10 @@ class LinearProbes:
         metrics, and a float64 copy of a whole test set would cost more than the product."""
         return torch.bmm(x, self.weight.to(x.dtype).mT).double() + self.bias[:, None, :]
 
+    def to(self, device: torch.device | str) -> "LinearProbes":
+        tensors = ("weight", "bias", "mean", "std", "lam", "cv_r2")
+        return replace(self, **{name: getattr(self, name).to(device) for name in tensors})
+
     def probe(self, li: int, fi: int, /, **about) -> Probe:
         """The probe of layer li and feature fi; `about` names it (feature, layer, model, pooling, ...)."""
         return Probe(
@@ -122,24 +126,25 @@ def fit_probes(
 ) -> LinearProbes:
     """x [L, N, d] activations (float32), y [N, F] labels (0/1 for logistic features), train [n] row indices,
     folds [n] episode-grouped fold id of each training row."""
+    dev = x.device  # everything is computed where the activations are: a GPU's batched products win most
     order = np.argsort(folds, kind="stable")  # rows grouped by fold: each fold is a view of one copy
     rows, folds = np.asarray(train)[order], np.asarray(folds)[order]
-    labels = torch.as_tensor(np.asarray(y)[rows], dtype=torch.float64)
-    z = x.index_select(1, torch.as_tensor(rows)).float()
+    labels = torch.as_tensor(np.asarray(y)[rows], dtype=torch.float64, device=dev)
+    z = x.index_select(1, torch.as_tensor(rows, device=dev)).float()
     mean, std = standardise_(z)
     basis = None
     if z.shape[2] > z.shape[1]:
         z, basis = _kernel_basis(z)
     n_layers, _, p = z.shape
     n_feat = len(kinds)
-    w = torch.zeros(n_layers, p, n_feat, dtype=torch.float64)
-    b = torch.zeros(n_layers, n_feat, dtype=torch.float64)
-    lam = torch.full((n_layers, n_feat), float(settings.logistic_l2), dtype=torch.float64)
-    cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64)
+    w = torch.zeros(n_layers, p, n_feat, dtype=torch.float64, device=dev)
+    b = torch.zeros(n_layers, n_feat, dtype=torch.float64, device=dev)
+    lam = torch.full((n_layers, n_feat), float(settings.logistic_l2), dtype=torch.float64, device=dev)
+    cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64, device=dev)
     reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
     gram = None
     if reg:
-        grid = torch.tensor(settings.ridge_grid, dtype=torch.float64)
+        grid = torch.tensor(settings.ridge_grid, dtype=torch.float64, device=dev)
         fit = fit_ridge(z, labels[:, reg], np.bincount(folds).tolist(), grid)
         w[:, :, reg], b[:, reg], lam[:, reg], cv_r2[:, reg] = fit.weight, fit.bias, fit.lam, fit.cv_r2
         gram = fit.moments.augmented_gram()  # the logistic probes' first Hessian, up to a constant

@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig, ListConfig
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config
-from vlactl.errors import UsageError, check_positive
+from vlactl.errors import UsageError, check_device, check_positive
 from vlactl.io import atomic_write_parquet, ensure_writable_dir
 from vlactl.steering.activations import FEATURES, ActivationStore
 from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
@@ -66,6 +66,7 @@ def _check(cfg: DictConfig) -> None:
     if not cfg.ridge_grid or min(cfg.ridge_grid) <= 0:
         raise UsageError(f"ridge_grid must be a non-empty list of penalties > 0, got {list(cfg.ridge_grid or [])}")
     check_positive("logistic_l2", cfg.logistic_l2)
+    check_device("device", cfg.device)
 
 
 def run_train_probes(cfg: DictConfig) -> Path:
@@ -140,7 +141,7 @@ def _frames(labels: pd.DataFrame, query: str) -> np.ndarray:
 
 def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds, settings, out) -> list[dict]:
     x = store.load(batch)
-    probes = fit_probes(x, y, kinds, train, folds, settings)
+    probes = fit_probes(x.to(cfg.device), y, kinds, train, folds, settings).to("cpu")
     x_test = x[:, torch.as_tensor(test)]
     del x
     readings = probes.readings(x_test)
