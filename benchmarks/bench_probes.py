@@ -3,7 +3,8 @@
 Both sides: standardise with the training split's statistics; ridge for the continuous features with the penalty
 chosen per layer x feature from the same grid by the same episode-grouped folds; L2 logistic regression (C = 1/l2)
 for the binary ones; test metrics with the same formulas. Prints wall and CPU times, their ratio, and the largest
-difference in any test metric.
+difference in any test metric. With --threads N both sides use N cores as each does best: torch splits the layers
+among N threads (vlactl.steering.probes.fit_probes), scikit-learn's loop runs in N worker processes.
 
     .venv/bin/python benchmarks/bench_probes.py            # sized like a real run: 24 layers, 20000 frames, d=256
     .venv/bin/python benchmarks/bench_probes.py --quick    # a few seconds
@@ -16,6 +17,7 @@ import time
 
 import numpy as np
 import torch
+from joblib import Parallel, delayed
 from sklearn.linear_model import LogisticRegression, Ridge
 from sklearn.preprocessing import StandardScaler
 from threadpoolctl import threadpool_limits
@@ -41,16 +43,17 @@ def torch_side(x, y, kinds, train, test, folds, settings, device):
     return metrics(probes.readings(x[:, torch.as_tensor(test)]), y[test], y[train], kinds)
 
 
-def sklearn_side(x, y, kinds, train, test, folds, settings, spent):
-    """The same work, one layer at a time; `spent` collects CPU seconds of the ridge and logistic parts."""
+def sklearn_layer(x, y, kinds, train, test, folds, settings):
+    """One layer's probes, the same work, on one BLAS thread -> test readings [n_test, F] and the CPU seconds of the
+    ridge and logistic parts."""
     reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
     log = [i for i, k in enumerate(kinds) if k == LOGISTIC]
     grid = settings.ridge_grid
-    preds = np.empty((x.shape[0], len(test), len(kinds)))
-    for layer in range(x.shape[0]):
+    preds = np.empty((len(test), len(kinds)))
+    with threadpool_limits(1):
         start = time.process_time()
-        scaler = StandardScaler().fit(x[layer, train])
-        z_tr, z_te = scaler.transform(x[layer, train]), scaler.transform(x[layer, test])
+        scaler = StandardScaler().fit(x[train])
+        z_tr, z_te = scaler.transform(x[train]), scaler.transform(x[test])
         y_tr = y[train][:, reg]
         cv_sse = np.zeros((len(grid), len(reg)))
         for g, alpha in enumerate(grid):
@@ -62,14 +65,23 @@ def sklearn_side(x, y, kinds, train, test, folds, settings, spent):
         for g in np.unique(best):
             cols = np.flatnonzero(best == g)
             model = Ridge(alpha=grid[g]).fit(z_tr, y_tr[:, cols])
-            preds[layer, :, np.asarray(reg)[cols]] = model.predict(z_te).reshape(len(test), -1).T
+            preds[:, np.asarray(reg)[cols]] = model.predict(z_te).reshape(len(test), -1)
         middle = time.process_time()
         for i in log:
             model = LogisticRegression(C=1 / settings.logistic_l2, max_iter=1000).fit(z_tr, y[train, i])
-            preds[layer, :, i] = model.decision_function(z_te)
-        spent["ridge"] += middle - start
-        spent["logistic"] += time.process_time() - middle
-    return metrics(torch.as_tensor(preds), y[test], y[train], kinds)
+            preds[:, i] = model.decision_function(z_te)
+    return preds, middle - start, time.process_time() - middle
+
+
+def sklearn_side(x, y, kinds, train, test, folds, settings, spent, workers):
+    """A loop over layers, run by `workers` processes (joblib, as one would spread it over cores: scikit-learn's small
+    products run slower with BLAS threads than without); `spent` collects the CPU seconds of its two parts."""
+    layers = Parallel(n_jobs=workers)(
+        delayed(sklearn_layer)(x[layer], y, kinds, train, test, folds, settings) for layer in range(x.shape[0])
+    )
+    spent["ridge"] += sum(r for _, r, _ in layers)
+    spent["logistic"] += sum(lo for _, _, lo in layers)
+    return metrics(torch.as_tensor(np.stack([p for p, _, _ in layers])), y[test], y[train], kinds)
 
 
 def timed(fn, *args):
@@ -86,7 +98,9 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=256)
     ap.add_argument("--features", type=int, default=16)
     ap.add_argument("--binary", type=int, default=2, help="how many of the features are binary (logistic probes)")
-    ap.add_argument("--threads", type=int, default=1, help="for both sides (torch and BLAS)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="cores for both sides: torch's threads (it splits the layers among them); scikit-learn's "
+                         "worker processes, each on its share of the layers with one BLAS thread")
     ap.add_argument("--device", default="cpu", help="where torch fits (cuda: a GPU against scikit-learn on the CPU)")
     ap.add_argument("--quick", action="store_true", help="6 layers, 40 episodes, d=64")
     args = ap.parse_args()
@@ -116,7 +130,10 @@ def main() -> None:
             torch_side, xt, y[:, reg], [REGRESSION] * len(reg), train, test, folds, settings, args.device
         )
         spent = {"ridge": 0.0, "logistic": 0.0}
-        theirs, s_wall, s_cpu = timed(sklearn_side, data.x, y, kinds, train, test, folds, settings, spent)
+        # start the workers (and their imports) before the clock: one layer each
+        sklearn_side(data.x[: args.threads], y, kinds, train, test, folds, settings, dict(spent), args.threads)
+        theirs, s_wall, _ = timed(sklearn_side, data.x, y, kinds, train, test, folds, settings, spent, args.threads)
+    s_cpu = spent["ridge"] + spent["logistic"]  # in the workers when there are several
 
     # the parts are compared in CPU time on the CPU (both sides single-threaded by default), in wall time on a GPU
     clock = "cpu" if args.device == "cpu" else "wall"

@@ -141,6 +141,22 @@ def test_settings_default_grid_is_used(planted):
     assert bool(probes.cv_r2[:, 3].isnan().all()) and not bool(probes.cv_r2[:, :3].isnan().any())
 
 
+def test_layers_split_among_threads_give_the_probes_of_one_fit(planted):
+    data, y, train, _, folds, _, _ = planted
+    x, kinds = torch.from_numpy(data.x), [REGRESSION] * 3 + [LOGISTIC]
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        whole = fit_probes(x, y, kinds, train, folds)
+        torch.set_num_threads(4)  # 6 layers in groups of 2, 2, 1, 1
+        split = fit_probes(x, y, kinds, train, folds)
+        assert torch.get_num_threads() == 4  # restored after the workers
+    finally:
+        torch.set_num_threads(threads)
+    for name in whole.TENSORS:
+        torch.testing.assert_close(getattr(split, name), getattr(whole, name), rtol=1e-6, atol=1e-9, equal_nan=True)
+
+
 class _FactoriesWithoutDevice(torch.overrides.TorchFunctionMode):
     """Records tensor factories called without an explicit device: on a GPU those would land on the CPU."""
 
@@ -158,13 +174,18 @@ class _FactoriesWithoutDevice(torch.overrides.TorchFunctionMode):
         return func(*args, **kwargs)
 
 
-@pytest.mark.parametrize("width", [24, 1300])  # 1300 > 1200 training rows: the kernel form
+@pytest.mark.parametrize("width", [24, 400])  # 400 > 300 training rows: the kernel form
 def test_fitting_creates_every_tensor_on_the_activations_device(planted, width):
     # CI has no GPU; a factory without device= is what breaks `train-probes device=cuda`, so catch it here
     data, y, train, _, folds, _, _ = planted
     x = torch.from_numpy(data.x) if width == 24 else torch.randn(2, data.x.shape[1], width)
-    with _FactoriesWithoutDevice() as mode:
-        fit_probes(x, y, [REGRESSION] * 3 + [LOGISTIC], train, folds)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # one fit in this thread: modes are per thread, and a GPU fit never splits its layers
+    try:
+        with _FactoriesWithoutDevice() as mode:
+            fit_probes(x, y, [REGRESSION] * 3 + [LOGISTIC], train[::4], folds[::4])
+    finally:
+        torch.set_num_threads(threads)
     assert mode.calls == []
 
 

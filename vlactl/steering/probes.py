@@ -12,6 +12,7 @@ in that span, so the reduced problem is exact and costs n^2 d instead of n d^2.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -79,9 +80,15 @@ class LinearProbes:
         metrics, and a float64 copy of a whole test set would cost more than the product."""
         return torch.bmm(x, self.weight.to(x.dtype).mT).double() + self.bias[:, None, :]
 
+    TENSORS = ("weight", "bias", "mean", "std", "lam", "cv_r2")
+
     def to(self, device: torch.device | str) -> "LinearProbes":
-        tensors = ("weight", "bias", "mean", "std", "lam", "cv_r2")
-        return replace(self, **{name: getattr(self, name).to(device) for name in tensors})
+        return replace(self, **{name: getattr(self, name).to(device) for name in self.TENSORS})
+
+    @staticmethod
+    def cat(parts: list["LinearProbes"]) -> "LinearProbes":
+        """The probes of several groups of layers (same features), as one."""
+        return replace(parts[0], **{name: torch.cat([getattr(p, name) for p in parts]) for name in parts[0].TENSORS})
 
     def probe(self, li: int, fi: int, /, **about) -> Probe:
         """The probe of layer li and feature fi; `about` names it (feature, layer, model, pooling, ...)."""
@@ -125,7 +132,28 @@ def fit_probes(
     settings: ProbeSettings = ProbeSettings(),
 ) -> LinearProbes:
     """x [L, N, d] activations (float32), y [N, F] labels (0/1 for logistic features), train [n] row indices,
-    folds [n] episode-grouped fold id of each training row."""
+    folds [n] episode-grouped fold id of each training row.
+
+    On the CPU with several torch threads, the layers are split among that many threads, each running torch on one:
+    layers are independent, and the small products and factorisations of a fit gain little from BLAS threads
+    (24 layers on 2 cores: 1.95 s against 2.7 s, docs/probes.md)."""
+    workers = min(torch.get_num_threads(), x.shape[0]) if x.device.type == "cpu" else 1
+    if workers == 1:
+        return _fit_layers(x, y, kinds, train, folds, settings)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # process-wide: every worker thread sees it
+    try:
+        with ThreadPoolExecutor(workers) as pool:
+            parts = list(pool.map(lambda part: _fit_layers(part, y, kinds, train, folds, settings),
+                                  x.tensor_split(workers)))
+    finally:
+        torch.set_num_threads(threads)
+    return LinearProbes.cat(parts)
+
+
+def _fit_layers(
+    x: torch.Tensor, y: np.ndarray, kinds: list[str], train: np.ndarray, folds: np.ndarray, settings: ProbeSettings
+) -> LinearProbes:
     dev = x.device  # everything is computed where the activations are: a GPU's batched products win most
     order = np.argsort(folds, kind="stable")  # rows grouped by fold: each fold is a view of one copy
     rows, folds = np.asarray(train)[order], np.asarray(folds)[order]
