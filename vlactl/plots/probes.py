@@ -40,11 +40,12 @@ def _bars(ax, labels, probe, base, ylabel, notes):
     ax.bar(pos - 0.2, base, 0.4, color=BASE)
     ax.bar(pos + 0.2, probe, 0.4, color=PROBE)
     for p, value, note in zip(pos, probe, notes):
-        ax.annotate(note, (p + 0.2, value), textcoords="offset points", xytext=(0, 2), ha="center", fontsize=6,
-                    rotation=90, va="bottom")
+        inside = value >= 0.5  # a tall bar holds its layer's name; above it the name would reach the title
+        ax.annotate(note, (p + 0.2, 0 if inside else value), textcoords="offset points", xytext=(0, 2), ha="center",
+                    fontsize=6, rotation=90, va="bottom", color="white" if inside else "black")
     ax.set_xticks(pos, labels, rotation=45, ha="right")
     ax.set_ylabel(ylabel)
-    ax.set_ylim(0, 1.4)
+    ax.set_ylim(0, max(1.15, 1.05 * np.nanmax(np.r_[probe, base])))  # a probe worse than its baseline stays in view
 
 
 def figure_best(table: pd.DataFrame):
