@@ -137,10 +137,10 @@ def fit_probes(
     On the CPU with several torch threads, the layers are split among that many threads, each running torch on one:
     layers are independent, and the small products and factorisations of a fit gain little from BLAS threads
     (24 layers on 2 cores: 1.95 s against 2.7 s, docs/probes.md)."""
-    workers = min(torch.get_num_threads(), x.shape[0]) if x.device.type == "cpu" else 1
+    threads = torch.get_num_threads()
+    workers = min(threads, x.shape[0]) if x.device.type == "cpu" else 1
     if workers == 1:
         return _fit_layers(x, y, kinds, train, folds, settings)
-    threads = torch.get_num_threads()
     torch.set_num_threads(1)  # process-wide: every worker thread sees it
     try:
         with ThreadPoolExecutor(workers) as pool:
