@@ -91,6 +91,7 @@ def staged_code(staging: Path, env_cfg: dict, adding: bool) -> str:
 
 
 def run_demos(cfg: DictConfig) -> dict:
+    from vlactl.env.libero_env import check_env_config
     from vlactl.env.suites import SUITES, resolve_tasks
 
     check_choice("suite", cfg.suite, SUITES)
@@ -98,6 +99,8 @@ def run_demos(cfg: DictConfig) -> dict:
         check_non_negative(kind.count, cfg[kind.count])
     check_non_negative("action_noise", cfg.action_noise)
     check_positive("workers", cfg.workers)
+    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
+    check_env_config(env_cfg)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     out = resolve_path(cfg.output_dir)
     ensure_writable_dir(out.parent, requested=out)
@@ -106,7 +109,6 @@ def run_demos(cfg: DictConfig) -> dict:
 
     everything = [(t, k, kind, cfg.seed + kind.seed_offset + k) for kind in KINDS for t in tasks
                   for k in range(cfg[kind.count])]
-    env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     noise = float(cfg.action_noise)
     work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging))
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]

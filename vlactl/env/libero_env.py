@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlactl.env import features
+from vlactl.errors import check_non_negative, check_positive
 from vlactl.env.suites import MAX_STEPS, TaskInfo, init_states, task_info
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
@@ -47,6 +48,15 @@ class EnvConfig:
     # cuts libero_spatial from 293k to 200k triangles (both renders 64 -> 42 ms). 0 draws the full meshes. Physics
     # and collision meshes are untouched.
     mesh_cell_mm: float = 2.0
+
+
+def check_env_config(settings: dict) -> EnvConfig:
+    """A stage's `env` settings as an EnvConfig, checked before any worker builds a simulator from them."""
+    cfg = EnvConfig(**settings)
+    check_positive("env.image_size", cfg.image_size)
+    for key in ("settle_steps", "msaa_samples", "mesh_cell_mm"):
+        check_non_negative(f"env.{key}", getattr(cfg, key))
+    return cfg
 
 
 @dataclass

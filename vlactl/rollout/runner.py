@@ -137,6 +137,7 @@ def mean_difference_directions(cfg: DictConfig, constraint, layers: list[str]) -
 
 def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     """Run (or resume) the rollout `cfg` describes; returns the summary. `load_policy` replaces the model registry."""
+    from vlactl.env.libero_env import check_env_config
     from vlactl.env.suites import MAX_STEPS, SUITES, resolve_tasks
 
     if OmegaConf.is_missing(cfg, "model"):
@@ -150,6 +151,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     check_positive("workers", cfg.workers)
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps
     check_positive("max_steps", cfg.max_steps)
+    env = OmegaConf.to_container(cfg.env, resolve=True)
+    check_env_config(env)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     constraint = parse_constraint(cfg.constraint, cfg.window)
     plan = steering(cfg, constraint)
@@ -171,7 +174,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     spec = RunSpec(
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
-        env=OmegaConf.to_container(cfg.env, resolve=True), load_policy=load_policy, constraint=str(cfg.constraint),
+        env=env, load_policy=load_policy, constraint=str(cfg.constraint),
         window=cfg.window, steering=plan, start_gripper=gripper,
     )
     if cfg.judge_from:
