@@ -35,6 +35,8 @@ def test_sweep_along_probe_directions_and_plot(demos, tmp_path):
                                  "cv_folds=2", "robustness_directions=2"])
     assert result.exit_code == 0, result.output
     out = sweep(demos, tmp_path / "sweep", f"probes={probes}", "feature=dyaw")
+    with pytest.raises(UsageError, match="no 'dx' probe for layer backbone.0"):
+        sweep(demos, tmp_path / "sweep-dx", f"probes={probes}", "feature=dx")
     table = pd.read_parquet(out / "sweep.parquet")
     layers = tiny_policy("hybrid").layer_names()
     assert set(table["layer"]) == set(layers) and set(table["alpha"]) == {-3.0, 3.0}
@@ -62,7 +64,7 @@ def test_zero_alpha_changes_nothing(demos, tmp_path):
     (["direction=sideways"], "direction"),
     (["alphas=[]"], "alphas"),
     (["direction=ones", "layers=[backbone.7]"], "unknown layer 'backbone.7'"),
-    (["probes=/nonexistent", "feature=dyaw"], "no 'dyaw' probe"),
+    (["probes=/nonexistent", "feature=dyaw"], "'/nonexistent' is not a probe run folder"),
 ])
 def test_bad_input_is_a_usage_error(demos, tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):

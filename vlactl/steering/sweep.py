@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from vlactl.config import REPO_ROOT, resolve_path, save_config
+from vlactl.config import REPO_ROOT, resolve_path, save_config, stage_output
 from vlactl.data.frames import load_frames
 from vlactl.env.features import ACTION_FEATURES
 from vlactl.errors import UsageError, check_choice, check_positive
@@ -30,7 +30,7 @@ from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture, intervene
 from vlactl.steering.collect import CAMERAS, choose_layers, frame_batch, spread
 from vlactl.steering.probe_file import load_probe
-from vlactl.steering.train_probes import probe_filename
+from vlactl.steering.train_probes import METRICS_NAME, probe_filename
 
 DIRECTIONS = ("probe", "ones", "random")
 SWEEP_NAME, NORMS_NAME = "sweep.parquet", "norms.parquet"
@@ -47,6 +47,8 @@ def _check(cfg: DictConfig) -> None:
         raise UsageError("alphas must be a non-empty list of numbers, e.g. alphas=[-4,4]")
     if cfg.direction == "probe" and cfg.probes is None:
         raise UsageError("direction=probe needs probes=<probe run folder from `vlactl train-probes`>")
+    if cfg.direction == "probe":
+        stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
 
 
 def directions(cfg: DictConfig, vla, layers: list[str]) -> dict[str, torch.Tensor]:
