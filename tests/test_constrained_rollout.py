@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 
 from vlactl.cli import app
 from vlactl.errors import UsageError
+from vlactl.models.registry import tiny_policy
 from vlactl.rollout.runner import rollout_config, run_rollout
 
 
@@ -63,6 +64,14 @@ def test_control_with_held_readings_still_lands_in_the_box(probes, tmp_path):
 def test_bad_holds_are_usage_errors(probes, tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):
         rollout(tmp_path, f"probes={probes}", *extra)
+
+
+def test_probes_of_another_model_are_refused_before_any_episode(probes, tmp_path):
+    cfg = rollout_config(["model=random", "tasks=[0]", "episodes_per_task=1", f"output_root={tmp_path}",
+                          "constraint=gripper=open", "method=control", f"probes={probes}"])
+    with pytest.raises(UsageError, match="was trained on model 'hybrid', .*; this is 'autoregressive'"):
+        run_rollout(cfg, load_policy=lambda name: tiny_policy("autoregressive"))
+    assert not any(tmp_path.iterdir())  # no run folder, no worker started
 
 
 @pytest.mark.slow
