@@ -120,3 +120,11 @@ def test_torchvision_imports_after_a_render_context():
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_robosuite_macro_notice_is_dropped():
+    """robosuite's three-line 'no private macro file' warning, printed by every worker, is filtered out."""
+    res = subprocess.run([sys.executable, "-c", "import vlactl.env, robosuite"], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "macro" not in res.stderr
