@@ -31,6 +31,7 @@ def test_help_lists_the_pipeline():
         (["train-probes", "activations=x", "test_fraction=most"], "test_fraction='most': expected a number"),
         (["train-policy", "model=autoregressive", "model.widht=64"], "unknown setting 'model.widht'"),
         (["tasks", "--suite", "libero_nope"], "libero_nope"),
+        (["rollout", "model=/tmp"], "'/tmp' is a folder but not a checkpoint (no config.json"),
         (["rollout", "model=random", "env.image_size=-3"], "env.image_size must be > 0, got -3"),
         (["demos", "env.mesh_cell_mm=-2"], "env.mesh_cell_mm must be >= 0, got -2"),
     ],

@@ -83,7 +83,15 @@ def resolve_checkpoint(name_or_path: str) -> Path:
     from vlactl.config import resolve_path
 
     if name_or_path not in MODELS:
-        folder = checkpoint_folder(resolve_path(name_or_path))
+        path = resolve_path(name_or_path)
+        folder = checkpoint_folder(path)
+        if folder is None and path.is_dir():
+            from vlactl.models.parts.policy import CONFIG_FILE
+
+            raise UsageError(
+                f"{name_or_path!r} is a folder but not a checkpoint (no {CONFIG_FILE} in it or in {CHECKPOINT_DIR}/); "
+                "pass a folder written by `vlactl train-policy`, or a model name"
+            )
         if folder is None:
             raise UsageError(
                 f"unknown model {name_or_path!r}; allowed: {', '.join([*MODELS, *ADAPTERS])}, {RANDOM}, "
