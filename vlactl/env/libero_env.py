@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlactl.env import features
-from vlactl.errors import check_non_negative, check_positive
 from vlactl.env.suites import MAX_STEPS, TaskInfo, init_states, task_info
+from vlactl.errors import check_non_negative, check_positive
 
 CAMERAS = ("agentview", "robot0_eye_in_hand")
 IMAGE_KEYS = {"agentview": "image", "robot0_eye_in_hand": "wrist_image"}

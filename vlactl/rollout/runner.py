@@ -26,8 +26,8 @@ from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
 from vlactl.rollout.constraints import START_GRIPPER, parse_constraint, start_gripper
 from vlactl.rollout.summary import format_summary, summarise_file
-from vlactl.steering.steer import check_probe_fits
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
+from vlactl.steering.steer import check_probe_fits
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
