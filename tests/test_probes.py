@@ -135,6 +135,16 @@ def test_robustness_grows_linearly_with_the_perturbation_for_regression(planted)
     assert bool((r["robust_max_0.1"][:, 3] <= 1).all())  # a change of probability
 
 
+def test_robustness_of_a_layer_does_not_depend_on_its_batch(planted):
+    data, _, _, test, _, probes, _ = planted
+    x = torch.from_numpy(data.x[:, test])
+    together = robustness(probes, x, [0.05], directions=4, rows=32, seed=3)
+    last = len(x) - 1
+    one = dataclasses.replace(probes, **{name: getattr(probes, name)[last:] for name in probes.TENSORS})
+    alone = robustness(one, x[last:], [0.05], directions=4, rows=32, seed=3, layer_ids=[last])
+    torch.testing.assert_close(alone["robust_max_0.05"][0], together["robust_max_0.05"][last])
+
+
 def test_settings_default_grid_is_used(planted):
     *_, probes, _ = planted
     assert set(probes.lam[:, :3].flatten().tolist()) <= set(ProbeSettings().ridge_grid)

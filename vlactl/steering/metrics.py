@@ -49,19 +49,24 @@ def classification_metrics(logit: torch.Tensor, y: torch.Tensor, train_majority:
 
 
 def robustness(
-    probes: LinearProbes, x: torch.Tensor, norms: list[float], directions: int, rows: int = 512, seed: int = 0
+    probes: LinearProbes, x: torch.Tensor, norms: list[float], directions: int, rows: int = 512, seed: int = 0,
+    layer_ids: list[int] | None = None,
 ) -> dict[str, torch.Tensor]:
     """Remark 1: the change |f(x + eps) - f(x)| of each probe's output under random perturbations eps.
 
     x [L, n, d] raw representations; ||eps|| = rho ||x|| for each relative norm rho, in `directions` random
     directions per layer (uniform on the sphere), for up to `rows` random frames x every direction. The output f is
     the reading for regression probes and the probability sigmoid(logit) for logistic ones. Returns mean and max,
-    [L, F] each, per rho.
+    [L, F] each, per rho. A layer's directions come from `seed` and its id (default: its position in x), so its
+    numbers do not depend on which layers share its batch.
     """
-    gen = torch.Generator().manual_seed(seed)
     n_layers, n, d = x.shape
-    x = x[:, torch.randperm(n, generator=gen)[:rows]]
-    dirs = torch.randn(n_layers, directions, d, generator=gen, dtype=torch.float64)
+    x = x[:, torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:rows]]
+    ids = range(n_layers) if layer_ids is None else layer_ids
+    dirs = torch.stack([
+        torch.randn(directions, d, generator=torch.Generator().manual_seed(seed * 1_000_003 + i), dtype=torch.float64)
+        for i in ids
+    ])
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     along = torch.einsum("lkd,lfd->lfk", dirs, probes.weight)  # w.e per layer, feature, direction
     size = x.double().norm(dim=-1)  # [L, n]
