@@ -91,3 +91,42 @@ def test_frames_query_trains_on_the_chosen_frames_only(acts, tmp_path, monkeypat
     table = pd.read_parquet(tmp_path / "early" / "metrics.parquet")
     full = 24 * 25
     assert (table["n_train"] + table["n_test"] == 24 * 10).all() and (table["n_train"] < full).all()
+
+
+def test_an_interrupted_run_resumes_from_its_finished_layers(acts, tmp_path, monkeypatch, capsys):
+    folder, _ = acts
+    args = ["train-probes", f"activations={folder}", "features=[x,gripper]", "robustness_directions=2"]
+    code, err = run_here(monkeypatch, capsys, *args, f"output_dir={tmp_path / 'whole'}")  # one batch of 4 layers
+    assert code == 0, err
+    whole = pd.read_parquet(tmp_path / "whole" / "metrics.parquet")
+
+    from vlactl.steering import train_probes
+
+    fitted, fit = [], train_probes.fit_probes
+
+    def fit_twice_then_stop(x, *rest):
+        if len(fitted) == 2:
+            raise KeyboardInterrupt  # Ctrl-C during the third layer
+        fitted.append(x.shape[0])
+        return fit(x, *rest)
+
+    out = tmp_path / "resumed"
+    monkeypatch.setattr(train_probes, "fit_probes", fit_twice_then_stop)
+    code, err = run_here(monkeypatch, capsys, *args, "layer_batch=1", f"output_dir={out}")
+    assert code == 130 and "re-run the same command to resume" in err, err
+    assert not (out / "metrics.parquet").exists() and len(list((out / "parts").glob("*.parquet"))) == 2
+    fitted.clear()
+    monkeypatch.setattr(train_probes, "fit_probes", lambda x, *rest: fitted.append(x.shape[0]) or fit(x, *rest))
+    code, err = run_here(monkeypatch, capsys, *args, "layer_batch=2", f"output_dir={out}")
+    assert code == 0 and "resuming: 2 of 4 layers" in err, err
+    assert fitted == [2]  # only the two layers left; batches may change size, the numbers do not
+    pd.testing.assert_frame_equal(pd.read_parquet(out / "metrics.parquet"), whole)
+
+    # other settings start over: the parts and probes of the earlier run go
+    code, err = run_here(monkeypatch, capsys, *args[:-1], "robustness_directions=3", "layers=[backbone.2]",
+                         f"output_dir={out}")
+    assert code == 0 and "resuming" not in err, err
+    table = pd.read_parquet(out / "metrics.parquet")
+    assert table["layer_index"].tolist() == [2, 2]  # the layer's place in the activation folder, not in the choice
+    assert sorted(p.name for p in (out / "probes").iterdir()) == ["backbone.2__gripper.safetensors",
+                                                                   "backbone.2__x.safetensors"]

@@ -3,17 +3,21 @@ beside this one; this file reads, checks, batches layers to bound memory, and wr
 
 from __future__ import annotations
 
+import hashlib
+import json
+import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
-from omegaconf import DictConfig, ListConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config
 from vlactl.errors import UsageError, check_device, check_positive
-from vlactl.io import atomic_write_parquet, ensure_writable_dir
+from vlactl.io import atomic_write_parquet, atomic_write_text, ensure_writable_dir
 from vlactl.steering.activations import FEATURES, ActivationStore
 from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
 from vlactl.steering.probe_file import save_probe
@@ -26,6 +30,10 @@ BINARY = {
     "gripper_action": ("gripper_action > 0 (close)", lambda v: v > 0),
 }
 METRICS_NAME = "metrics.parquet"
+# The settings that change a probe or its metrics (not where or how fast it is fitted); with the activation folder
+# they key the finished layers an interrupted run resumes from.
+RESULT_KEYS = ("frames", "test_fraction", "cv_folds", "seed", "ridge_grid", "logistic_l2", "newton_steps",
+               "robustness_norms", "robustness_directions", "robustness_frames")
 
 
 def probe_filename(layer: str, feature: str) -> str:
@@ -107,17 +115,22 @@ def run_train_probes(cfg: DictConfig) -> Path:
         ridge_grid=tuple(float(v) for v in cfg.ridge_grid), logistic_l2=float(cfg.logistic_l2),
         newton_steps=int(cfg.newton_steps),
     )
+    parts = _parts_dir(out, cfg, store, features)
+    todo = [name for name in layers if not (parts / f"{name}.parquet").is_file()]
+    if len(todo) < len(layers):
+        print(f"resuming: {len(layers) - len(todo)} of {len(layers)} layers already fitted in {out}", file=sys.stderr)
     by_width: dict[int, list[str]] = {}
-    for name in layers:
+    for name in todo:
         by_width.setdefault(store.widths[name], []).append(name)
-    rows = []
-    for group in by_width.values():
-        for start in range(0, len(group), cfg.layer_batch):
-            batch = group[start : start + cfg.layer_batch]
-            print(f"probes for {', '.join(batch)}", file=sys.stderr)
-            rows += _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds, settings, out)
+    with tqdm(total=len(layers), initial=len(layers) - len(todo), desc="train-probes", unit="layer") as bar:
+        for group in by_width.values():
+            for start in range(0, len(group), cfg.layer_batch):
+                batch = group[start : start + cfg.layer_batch]
+                bar.set_postfix_str(", ".join(batch))
+                _fit_batch(cfg, store, batch, features, kinds, y, train, test, folds, settings, out)
+                bar.update(len(batch))
     order = {name: i for i, name in enumerate(FEATURES)}
-    table = pd.DataFrame(rows)
+    table = pd.concat([pd.read_parquet(parts / f"{name}.parquet") for name in layers])
     table = table.sort_values(["feature", "layer_index"], key=lambda c: c.map(order) if c.name == "feature" else c)
     table = table.reset_index(drop=True)
     atomic_write_parquet(out / METRICS_NAME, table)
@@ -125,6 +138,26 @@ def run_train_probes(cfg: DictConfig) -> Path:
     _print_best(table)
     print(f"wrote {out / METRICS_NAME} and {len(table)} probes under {out / 'probes'}", file=sys.stderr)
     return out
+
+
+def _parts_dir(out: Path, cfg: DictConfig, store: ActivationStore, features: list[str]) -> Path:
+    """`<out>/parts`, one metrics part per finished layer; emptied first when its layers were fitted with other
+    settings or on other activations (a collect resumed since adds frames, and so changes the split). Only the
+    parts' key is compared: a change of device, threads or layer batch resumes."""
+    settings = OmegaConf.to_container(cfg, resolve=True)
+    key = json.dumps({"activations": str(store.folder.resolve()), "meta": store.meta, "features": features,
+                      **{k: settings[k] for k in RESULT_KEYS}}, sort_keys=True, default=str)
+    key = hashlib.sha256(key.encode()).hexdigest()
+    parts = out / "parts"
+    if not (parts / "key").is_file() or (parts / "key").read_text() != key:
+        # a new run: no table of an earlier one may claim the probe files it rewrites, and no probe of it may stay
+        (out / METRICS_NAME).unlink(missing_ok=True)
+        shutil.rmtree(parts, ignore_errors=True)
+        shutil.rmtree(out / "probes", ignore_errors=True)
+    parts.mkdir(exist_ok=True)
+    (out / "probes").mkdir(exist_ok=True)
+    atomic_write_text(parts / "key", key)
+    return parts
 
 
 def _frames(labels: pd.DataFrame, query: str) -> np.ndarray:
@@ -139,7 +172,8 @@ def _frames(labels: pd.DataFrame, query: str) -> np.ndarray:
     return mask.to_numpy()
 
 
-def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds, settings, out) -> list[dict]:
+def _fit_batch(cfg, store, batch, features, kinds, y, train, test, folds, settings, out) -> None:
+    """Fit a batch of layers; write each layer's probe files, then its metrics part (which marks it done)."""
     x = store.load(batch)
     probes = fit_probes(x.to(cfg.device), y, kinds, train, folds, settings).to("cpu")
     x_test = x[:, torch.as_tensor(test)]
@@ -157,14 +191,15 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
         m = classification_metrics(readings[..., log], y_test[:, log], majority)
         per_feature.update({(key, f): value[:, j] for key, value in m.items() for j, f in enumerate(log)})
     robust = robustness(
-        probes, x_test, list(cfg.robustness_norms), cfg.robustness_directions, cfg.robustness_frames, cfg.seed
+        probes, x_test, list(cfg.robustness_norms), cfg.robustness_directions, cfg.robustness_frames, cfg.seed,
+        layer_ids=[store.layers.index(layer) for layer in batch],
     )
-    rows = []
     for li, layer in enumerate(batch):
+        rows = []
         for fi, feature in enumerate(features):
             row = {
-                "model": store.model, "pooling": store.pooling, "layer": layer, "layer_index": layers.index(layer),
-                "steerable": layer in store.steerable,
+                "model": store.model, "pooling": store.pooling, "layer": layer,
+                "layer_index": store.layers.index(layer), "steerable": layer in store.steerable,
                 "feature": feature, "kind": kinds[fi], "n_train": len(train), "n_test": len(test),
                 "penalty": float(probes.lam[li, fi]), "cv_r2": float(probes.cv_r2[li, fi]),
                 "weight_norm": float(probes.weight[li, fi].norm()),
@@ -177,7 +212,7 @@ def _fit_batch(cfg, store, batch, layers, features, kinds, y, train, test, folds
                                  positive=positive, metrics={k: v for k, v in row.items() if isinstance(v, float)})
             save_probe(probe, out / row["probe"])
             rows.append(row)
-    return rows
+        atomic_write_parquet(out / "parts" / f"{layer}.parquet", pd.DataFrame(rows))
 
 
 def steerable_rows(table: pd.DataFrame) -> pd.DataFrame:
