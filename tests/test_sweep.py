@@ -59,6 +59,32 @@ def test_zero_alpha_changes_nothing(demos, tmp_path):
     np.testing.assert_allclose(table.filter(like="d_").to_numpy(), 0, atol=1e-6)
 
 
+def test_an_interrupted_sweep_resumes_from_its_finished_batches(demos, tmp_path, monkeypatch):
+    from vlactl.steering import sweep as sweep_module
+
+    whole = pd.read_parquet(sweep(demos, tmp_path / "whole", "direction=random") / "sweep.parquet")
+    swept, run_batch = [], sweep_module._sweep_batch
+
+    def stop_at_the_second(vla, obs, index, *rest):
+        if swept:
+            raise KeyboardInterrupt
+        swept.append(list(index))
+        return run_batch(vla, obs, index, *rest)
+
+    monkeypatch.setattr(sweep_module, "_sweep_batch", stop_at_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        sweep(demos, tmp_path / "resumed", "direction=random")
+    assert not (tmp_path / "resumed" / "sweep.parquet").exists()
+    monkeypatch.setattr(sweep_module, "_sweep_batch", lambda vla, obs, index, *rest: swept.append(list(index))
+                        or run_batch(vla, obs, index, *rest))
+    table = pd.read_parquet(sweep(demos, tmp_path / "resumed", "direction=random") / "sweep.parquet")
+    assert len(swept) == 2 and swept[0] != swept[1]  # the first batch once, then only the second
+    pd.testing.assert_frame_equal(table, whole)
+    swept.clear()
+    sweep(demos, tmp_path / "resumed", "direction=random", "seed=1")  # another direction: starts over
+    assert len(swept) == 2
+
+
 @pytest.mark.parametrize("extra, message", [
     (["direction=probe"], "needs probes="),
     (["direction=sideways"], "direction"),

@@ -84,6 +84,24 @@ def atomic_dir(path: Path):
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def keyed_parts(out: Path, key: dict, results: tuple[str, ...]) -> Path:
+    """`<out>/parts`, where a stage keeps each finished piece of its work for an interrupted run to resume from.
+    `key` (JSON) is what the pieces were computed from; when it differs from the one they were made with, the pieces
+    and the earlier run's `results` (names in `out`) are removed first, so a folder never mixes two runs."""
+    import hashlib
+    import shutil
+
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
+    parts = Path(out) / "parts"
+    if not (parts / "key").is_file() or (parts / "key").read_text() != digest:
+        for name in (*results, "parts"):
+            target = Path(out) / name
+            shutil.rmtree(target) if target.is_dir() else target.unlink(missing_ok=True)
+    parts.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(parts / "key", digest)
+    return parts
+
+
 def folder_name(text: str) -> str:
     """`text` made safe as one folder name: runs of other characters become '-' (e.g. `gripper=open` -> `gripper-open`)."""
     return re.sub(r"[^A-Za-z0-9._-]+", "-", text).strip("-.")

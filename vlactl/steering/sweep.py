@@ -12,6 +12,7 @@ norm) under the run folder.
 
 from __future__ import annotations
 
+import hashlib
 import sys
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from vlactl.config import REPO_ROOT, resolve_path, save_config, stage_output
 from vlactl.data.frames import load_frames
 from vlactl.env.features import ACTION_FEATURES
 from vlactl.errors import UsageError, check_choice, check_positive
-from vlactl.io import atomic_write_parquet, ensure_writable_dir
+from vlactl.io import atomic_write_parquet, ensure_writable_dir, keyed_parts
 from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture, intervene
 from vlactl.steering.collect import CAMERAS, choose_layers, frame_batch, spread
@@ -89,7 +90,9 @@ def default_output(cfg: DictConfig) -> Path:
 
 
 def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
-    from vlactl.models.registry import policy_loader
+    """Sweep (or resume sweeping) and return the run folder: each batch of frames is a part, written once all its
+    layers and alphas are done, which a re-run of the same command skips."""
+    from vlactl.models.registry import policy_loader, weights_fingerprint
 
     _check(cfg)
     torch.set_num_threads(cfg.threads)
@@ -100,36 +103,54 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     rows_all = spread(len(frames), cfg.frames)
     out = resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg)
     ensure_writable_dir(out, cfg.output_dir)
+    key = {"model": str(cfg.model), "model_args": OmegaConf.to_container(cfg, resolve=True).get("model_args"),
+           "weights": None if load_policy else weights_fingerprint(str(cfg.model)), "dataset": frames.fingerprint,
+           "directions": hashlib.sha256(b"".join(units[name].numpy().tobytes() for name in layers)).hexdigest(),
+           "layers": layers, "alphas": list(cfg.alphas), "pooling": cfg.pooling, "frames": cfg.frames,
+           "batch_size": cfg.batch_size}
+    parts = keyed_parts(out, key, results=(SWEEP_NAME, NORMS_NAME))
 
-    changes, norms = [], []
-    total = len(rows_all) * len(layers) * len(cfg.alphas)
-    with tqdm(total=total, desc=f"sweep {vla.name}", unit="frame") as bar:
-        for start in range(0, len(rows_all), cfg.batch_size):
+    starts = range(0, len(rows_all), cfg.batch_size)
+    done = [start for start in starts if (parts / f"frames{start:06d}.parquet").is_file()]
+    if done:
+        print(f"resuming: {len(done)} of {len(starts)} batches of frames already swept in {out}", file=sys.stderr)
+    per_frame = len(layers) * len(cfg.alphas)
+    initial = sum(len(rows_all[start : start + cfg.batch_size]) for start in done) * per_frame
+    with tqdm(total=len(rows_all) * per_frame, initial=initial, desc=f"sweep {vla.name}", unit="frame") as bar:
+        for start in (start for start in starts if start not in done):
             index = rows_all[start : start + cfg.batch_size]
-            obs = frame_batch(frames, index)
-            with capture(vla, layers, cfg.pooling) as seen, torch.inference_mode():
-                vla.encode(obs)
-            for layer in layers:
-                if seen[layer]:
-                    norms.append(pd.DataFrame({"layer": layer, "frame": index,
-                                               "norm": seen[layer][0].float().norm(dim=-1).numpy()}))
-            plain = _predict(vla, obs)
-            for layer in layers:
-                for alpha in cfg.alphas:
-                    delta = _predict(vla, obs, layer, float(alpha) * units[layer]) - plain
-                    table = pd.DataFrame(delta, columns=[f"d_{a}" for a in ACTION_FEATURES])
-                    table.insert(0, "frame", index)
-                    table.insert(0, "alpha", float(alpha))
-                    table.insert(0, "layer", layer)
-                    changes.append(table)
-                    bar.update(len(index))
+            changes, norms = _sweep_batch(vla, frame_batch(frames, index), index, layers, units, cfg, bar)
+            atomic_write_parquet(parts / f"frames{start:06d}_norms.parquet", norms)
+            atomic_write_parquet(parts / f"frames{start:06d}.parquet", changes)  # last: marks the batch done
     order = {name: i for i, name in enumerate(layers)}
-    sweep = pd.concat(changes, ignore_index=True)
+    sweep = pd.concat([pd.read_parquet(parts / f"frames{start:06d}.parquet") for start in starts], ignore_index=True)
     sweep.insert(1, "layer_index", sweep["layer"].map(order))
     atomic_write_parquet(out / SWEEP_NAME, sweep)
-    norm_table = pd.concat(norms, ignore_index=True)
+    norm_table = pd.concat([pd.read_parquet(parts / f"frames{start:06d}_norms.parquet") for start in starts],
+                           ignore_index=True)
     norm_table.insert(1, "layer_index", norm_table["layer"].map(order))
     atomic_write_parquet(out / NORMS_NAME, norm_table)
     save_config(cfg, out)
     print(f"wrote {out / SWEEP_NAME} ({len(sweep)} rows) and {out / NORMS_NAME}", file=sys.stderr)
     return out
+
+
+def _sweep_batch(vla, obs: PolicyInput, index, layers, units, cfg, bar) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """One batch of frames: the change of every action dimension per layer and alpha, and each layer's norm."""
+    with capture(vla, layers, cfg.pooling) as seen, torch.inference_mode():
+        vla.encode(obs)
+    norms = [pd.DataFrame({"layer": layer, "frame": index, "norm": seen[layer][0].float().norm(dim=-1).numpy()})
+             for layer in layers if seen[layer]]
+    plain = _predict(vla, obs)
+    changes = []
+    for layer in layers:
+        for alpha in cfg.alphas:
+            delta = _predict(vla, obs, layer, float(alpha) * units[layer]) - plain
+            table = pd.DataFrame(delta, columns=[f"d_{a}" for a in ACTION_FEATURES])
+            table.insert(0, "frame", index)
+            table.insert(0, "alpha", float(alpha))
+            table.insert(0, "layer", layer)
+            changes.append(table)
+            bar.update(len(index))
+    norms = pd.concat(norms, ignore_index=True) if norms else pd.DataFrame(columns=["layer", "frame", "norm"])
+    return pd.concat(changes, ignore_index=True), norms

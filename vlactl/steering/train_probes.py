@@ -3,9 +3,6 @@ beside this one; this file reads, checks, batches layers to bound memory, and wr
 
 from __future__ import annotations
 
-import hashlib
-import json
-import shutil
 import sys
 from pathlib import Path
 
@@ -17,7 +14,7 @@ from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config
 from vlactl.errors import UsageError, check_device, check_positive
-from vlactl.io import atomic_write_parquet, atomic_write_text, ensure_writable_dir
+from vlactl.io import atomic_write_parquet, ensure_writable_dir, keyed_parts
 from vlactl.steering.activations import FEATURES, ActivationStore
 from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
 from vlactl.steering.probe_file import save_probe
@@ -109,13 +106,18 @@ def run_train_probes(cfg: DictConfig) -> Path:
 
     run = cfg.run or resolve_path(cfg.activations).name
     out = resolve_path(cfg.output_dir) if cfg.output_dir else REPO_ROOT / "outputs" / "probes" / run
-    ensure_writable_dir(out / "probes", requested=out)
+    ensure_writable_dir(out, requested=out)
     torch.set_num_threads(cfg.threads)
     settings = ProbeSettings(
         ridge_grid=tuple(float(v) for v in cfg.ridge_grid), logistic_l2=float(cfg.logistic_l2),
         newton_steps=int(cfg.newton_steps),
     )
-    parts = _parts_dir(out, cfg, store, features)
+    # a collect resumed since adds frames, and so changes the split; device, threads and layer batch change nothing
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    key = {"activations": str(store.folder.resolve()), "meta": store.meta, "features": features,
+           **{k: resolved[k] for k in RESULT_KEYS}}
+    parts = keyed_parts(out, key, results=(METRICS_NAME, "probes"))
+    (out / "probes").mkdir(exist_ok=True)
     todo = [name for name in layers if not (parts / f"{name}.parquet").is_file()]
     if len(todo) < len(layers):
         print(f"resuming: {len(layers) - len(todo)} of {len(layers)} layers already fitted in {out}", file=sys.stderr)
@@ -138,26 +140,6 @@ def run_train_probes(cfg: DictConfig) -> Path:
     _print_best(table)
     print(f"wrote {out / METRICS_NAME} and {len(table)} probes under {out / 'probes'}", file=sys.stderr)
     return out
-
-
-def _parts_dir(out: Path, cfg: DictConfig, store: ActivationStore, features: list[str]) -> Path:
-    """`<out>/parts`, one metrics part per finished layer; emptied first when its layers were fitted with other
-    settings or on other activations (a collect resumed since adds frames, and so changes the split). Only the
-    parts' key is compared: a change of device, threads or layer batch resumes."""
-    settings = OmegaConf.to_container(cfg, resolve=True)
-    key = json.dumps({"activations": str(store.folder.resolve()), "meta": store.meta, "features": features,
-                      **{k: settings[k] for k in RESULT_KEYS}}, sort_keys=True, default=str)
-    key = hashlib.sha256(key.encode()).hexdigest()
-    parts = out / "parts"
-    if not (parts / "key").is_file() or (parts / "key").read_text() != key:
-        # a new run: no table of an earlier one may claim the probe files it rewrites, and no probe of it may stay
-        (out / METRICS_NAME).unlink(missing_ok=True)
-        shutil.rmtree(parts, ignore_errors=True)
-        shutil.rmtree(out / "probes", ignore_errors=True)
-    parts.mkdir(exist_ok=True)
-    (out / "probes").mkdir(exist_ok=True)
-    atomic_write_text(parts / "key", key)
-    return parts
 
 
 def _frames(labels: pd.DataFrame, query: str) -> np.ndarray:
