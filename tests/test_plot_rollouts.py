@@ -36,6 +36,11 @@ def test_figures_from_every_constrained_run_under_the_root(tmp_path):
         assert (tmp_path / "figures" / f"{name}.png").stat().st_size > 0
     table = (tmp_path / "figures" / "summary.md").read_text().splitlines()
     assert len(table) == 2 + 4 and table[2].startswith("| gripper=closed | prompt | 6 |")
+    run = tmp_path / "hybrid_libero_spatial_gripper-closed_prompt"
+    k, n, z = pd.read_parquet(run / "episodes.parquet")["success"].sum(), 6, 1.959964
+    centre = (k / n + z**2 / (2 * n)) / (1 + z**2 / n)  # Wilson's interval, written out
+    half = z * np.sqrt(k / n * (1 - k / n) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
+    assert f"| {100 * k / n:.0f}% ({100 * (centre - half):.0f}–{100 * (centre + half):.0f}%) |" in table[2]
 
 
 def test_no_constrained_run_is_a_usage_error(tmp_path):

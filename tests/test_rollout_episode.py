@@ -12,7 +12,7 @@ from vlactl.rollout import parts
 from vlactl.rollout.agents import VLAAgent
 from vlactl.rollout.episode import run_episode
 from vlactl.rollout.runner import batches
-from vlactl.rollout.summary import summarise
+from vlactl.rollout.summary import format_summary, summarise
 
 
 class FakeEnv:
@@ -86,6 +86,8 @@ def test_steps_table_and_summary():
     summary = summarise(episodes)
     assert summary["successes"] == 2 and summary["episodes"] == 3 and summary["mean_steps_success"] == 20
     assert summary["per_task"][0]["success_rate"] == 0.5 and summary["per_task"][1]["mean_steps"] == 30
+    assert summary["success_ci95"] == pytest.approx((0.2077, 0.9385), abs=1e-4)  # Wilson, 2 of 3
+    assert format_summary(summary).splitlines()[0] == "success 2/3 (67%, 95% CI 21–94%)"
 
 
 def test_batches_keep_tasks_together_unless_workers_would_idle():

@@ -5,7 +5,8 @@
   threshold): the constraint asks for the side of 0 the condition names (Figs. 4, 5, 7).
 - `success_vs_satisfaction`: per condition and method, mean constraint satisfaction against success rate over tasks,
   with a one-standard-deviation ellipse of the per-task values (Figs. 6, 8);
-- `summary.md`: success and satisfaction per constraint and method, the unconstrained run included.
+- `summary.md`: success (with its 95% Wilson interval) and satisfaction per constraint and method, the unconstrained
+  run included.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from vlactl.config import resolve_path
 from vlactl.errors import UsageError
 from vlactl.io import atomic_write_text
 from vlactl.plots.files import check_formats, plt, save_figure
+from vlactl.rollout.summary import success_interval
 
 METHOD_ORDER = ("none", "prompt", "control", "alpha")
 
@@ -97,11 +99,12 @@ def summary_table(folders: list[Path]) -> str:
     episodes = pd.concat([pd.read_parquet(f / "episodes.parquet") for f in folders], ignore_index=True)
     if "satisfaction" not in episodes:
         episodes["satisfaction"] = np.nan
-    rows = ["| constraint | method | episodes | success | satisfaction |", "|---|---|---|---|---|"]
+    rows = ["| constraint | method | episodes | success (95% CI) | satisfaction |", "|---|---|---|---|---|"]
     for (constraint, method), group in episodes.groupby(["constraint", "method"], sort=True):
         sat = group["satisfaction"].mean()
-        rows.append(f"| {constraint} | {method} | {len(group)} | {100 * group['success'].mean():.0f}% | "
-                    f"{'–' if np.isnan(sat) else f'{100 * sat:.0f}%'} |")
+        low, high = success_interval(int(group["success"].sum()), len(group))
+        rows.append(f"| {constraint} | {method} | {len(group)} | {100 * group['success'].mean():.0f}% "
+                    f"({100 * low:.0f}–{100 * high:.0f}%) | {'–' if np.isnan(sat) else f'{100 * sat:.0f}%'} |")
     return "\n".join(rows) + "\n"
 
 

@@ -1,10 +1,20 @@
-"""Success per task and overall, with counts and mean episode length, from a rollout's episode table."""
+"""Success per task and overall, with counts, a 95% interval and mean episode length, from a rollout's episode
+table."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import pandas as pd
+from scipy.stats import binomtest
+
+
+def success_interval(successes: int, episodes: int) -> tuple[float, float] | None:
+    """95% Wilson interval of a success rate: with 20 episodes, 16 successes are anything from 58% to 92%."""
+    if not episodes:
+        return None
+    ci = binomtest(successes, episodes).proportion_ci(confidence_level=0.95, method="wilson")
+    return float(ci.low), float(ci.high)
 
 
 def _stats(episodes: pd.DataFrame) -> dict:
@@ -14,6 +24,7 @@ def _stats(episodes: pd.DataFrame) -> dict:
         "episodes": n,
         "successes": ok,
         "success_rate": ok / n if n else None,
+        "success_ci95": success_interval(ok, n),
         "mean_steps": float(episodes["steps"].mean()) if n else None,
         "mean_steps_success": float(won.mean()) if len(won) else None,
     }
@@ -36,7 +47,10 @@ def summarise_file(path: Path) -> dict:
 
 def format_summary(summary: dict) -> str:
     def rate(s):
-        return "n/a" if s["success_rate"] is None else f"{100 * s['success_rate']:.0f}%"
+        if s["success_rate"] is None:
+            return "n/a"
+        low, high = s["success_ci95"]
+        return f"{100 * s['success_rate']:.0f}%, 95% CI {100 * low:.0f}–{100 * high:.0f}%"
 
     lines = [f"success {summary['successes']}/{summary['episodes']} ({rate(summary)})"]
     if "satisfaction" in summary:
