@@ -46,13 +46,13 @@ def summarise_file(path: Path) -> dict:
 
 
 def format_summary(summary: dict) -> str:
-    def rate(s):
+    def rate(s, interval=False):  # the interval overall; per task (10 episodes or so) it would span most of [0, 1]
         if s["success_rate"] is None:
             return "n/a"
         low, high = s["success_ci95"]
-        return f"{100 * s['success_rate']:.0f}%, 95% CI {100 * low:.0f}–{100 * high:.0f}%"
+        return f"{100 * s['success_rate']:.0f}%" + (f", 95% CI {100 * low:.0f}–{100 * high:.0f}%" if interval else "")
 
-    lines = [f"success {summary['successes']}/{summary['episodes']} ({rate(summary)})"]
+    lines = [f"success {summary['successes']}/{summary['episodes']} ({rate(summary, interval=True)})"]
     if "satisfaction" in summary:
         lines.append(f"constraint {summary.get('constraint')} ({summary.get('method')}): satisfied on "
                      f"{100 * summary['satisfaction']:.0f}% of window steps")
