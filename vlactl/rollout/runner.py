@@ -27,7 +27,6 @@ from vlactl.rollout.constrained import METHODS, STEERING, Steering
 from vlactl.rollout.constraints import START_GRIPPER, parse_constraint, start_gripper
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
-from vlactl.steering.steer import check_probe_fits
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
@@ -164,8 +163,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 
     # Load once here, before any worker starts: a bad model name fails in one line, and we learn its settings.
     agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
-    for probe in plan.probes + plan.holds:
-        check_probe_fits(probe, agent.vla)
+    for probe in plan.probes + plan.holds:  # here, not in a worker after its start-up; rollouts steer at "prefix"
+        probe.check_fits(agent.vla.name, agent.vla.layer_width(probe.layer), "prefix")
     policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,
               "gripper_levels": None if agent.gripper_levels is None else agent.gripper_levels.tolist()}
     del agent

@@ -47,14 +47,10 @@ def load_probe(path: Path, *, model: str | None = None, width: int | None = None
         raise UsageError(f"{str(path)!r} is not a readable safetensors file ({exc})") from None
     if meta.get("format") != FORMAT:
         raise UsageError(f"{str(path)!r} is not a vlactl probe (format {meta.get('format')!r})")
-    checks = [
-        ("model", model, meta["model"]), ("pooling", pooling, meta["pooling"]), ("width", width, int(meta["width"])),
-    ]
-    for name, wanted, have in checks:
-        if wanted is not None and wanted != have:
-            raise UsageError(f"probe {path.name} was trained with {name} {have!r}, but this run has {name} {wanted!r}")
-    return Probe(
+    probe = Probe(
         feature=meta["feature"], kind=meta["kind"], layer=meta["layer"], model=meta["model"], pooling=meta["pooling"],
         weight=tensors["weight"], bias=float(tensors["bias"][0]), mean=tensors["mean"], std=tensors["std"],
         positive=meta.get("positive", ""), metrics=json.loads(meta.get("metrics", "{}")),
     )
+    probe.check_fits(model, width, pooling)
+    return probe

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from vlactl.errors import UsageError
 from vlactl.steering.logistic import fit_logistic
 from vlactl.steering.ridge import fit_ridge
 
@@ -61,6 +62,16 @@ class Probe:
     def output(self, x: torch.Tensor) -> torch.Tensor:
         z = self.reading(x)
         return torch.sigmoid(z) if self.kind == LOGISTIC else z
+
+    def check_fits(self, model: str | None = None, width: int | None = None, pooling: str | None = None) -> None:
+        """A one-line UsageError unless this probe reads `model`'s layer of this `width` at this `pooling` (None:
+        not checked)."""
+        model, width, pooling = model or self.model, width or self.width, pooling or self.pooling
+        if (model, width, pooling) != (self.model, self.width, self.pooling):
+            raise UsageError(
+                f"probe {self.feature}@{self.layer} was trained on model {self.model!r}, pooling {self.pooling!r}, "
+                f"width {self.width}; this is {model!r}, pooling {pooling!r}, width {width}"
+            )
 
 
 @dataclass

@@ -37,16 +37,6 @@ class Constraint:
         return self.probe.layer
 
 
-def check_probe_fits(probe: Probe, vla, pooling: str = "prefix") -> None:
-    """A one-line UsageError unless the probe reads this model's layer at this pooling."""
-    if probe.model != vla.name or probe.pooling != pooling or probe.width != vla.layer_width(probe.layer):
-        raise UsageError(
-            f"probe {probe.feature}@{probe.layer} was trained on model {probe.model!r}, pooling "
-            f"{probe.pooling!r}, width {probe.width}; this is {vla.name!r}, pooling {pooling!r}, width "
-            f"{vla.layer_width(probe.layer)}"
-        )
-
-
 class Steerer:
     """Context manager: hooks installed on enter, removed on exit. `log` holds one dict per forward, layer,
     constraint and batch row: reading before and after, ||u||, and whether u was non-zero."""
@@ -58,7 +48,7 @@ class Steerer:
         if not constraints:
             raise UsageError("steering needs at least one constraint")
         for c in constraints:
-            check_probe_fits(c.probe, vla, pooling)
+            c.probe.check_fits(vla.name, vla.layer_width(c.layer), pooling)
         if method == "direction" and not {c.layer for c in constraints} <= set(directions or {}):
             raise UsageError("method=direction needs a direction for every constrained layer")
         self.vla, self.method, self.alpha, self.pooling = vla, method, float(alpha), pooling
