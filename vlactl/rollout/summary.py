@@ -6,11 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import pandas as pd
-from scipy.stats import binomtest
 
 
 def success_interval(successes: int, episodes: int) -> tuple[float, float] | None:
     """95% Wilson interval of a success rate: with 20 episodes, 16 successes are anything from 58% to 92%."""
+    from scipy.stats import binomtest  # here: half a second of import that a rollout's start-up need not pay
+
     if not episodes:
         return None
     ci = binomtest(successes, episodes).proportion_ci(confidence_level=0.95, method="wilson")
