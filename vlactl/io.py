@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -66,8 +68,6 @@ def atomic_dir(path: Path):
     A folder cannot be swapped in one rename: the old one is moved aside first and deleted after, so a crash in
     between leaves `path` missing (never half-written) with the previous version beside it as `.<name>.old`.
     """
-    import shutil
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
@@ -88,9 +88,6 @@ def keyed_parts(out: Path, key: dict, results: tuple[str, ...]) -> Path:
     """`<out>/parts`, where a stage keeps each finished piece of its work for an interrupted run to resume from.
     `key` (JSON) is what the pieces were computed from; when it differs from the one they were made with, the pieces
     and the earlier run's `results` (names in `out`) are removed first, so a folder never mixes two runs."""
-    import hashlib
-    import shutil
-
     digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
     parts = Path(out) / "parts"
     if not (parts / "key").is_file() or (parts / "key").read_text() != digest:

@@ -50,13 +50,12 @@ class EnvConfig:
     mesh_cell_mm: float = 2.0
 
 
-def check_env_config(settings: dict) -> EnvConfig:
-    """A stage's `env` settings as an EnvConfig, checked before any worker builds a simulator from them."""
+def check_env_config(settings: dict) -> None:
+    """Check a stage's `env` settings before any worker builds a simulator from them."""
     cfg = EnvConfig(**settings)
     check_positive("env.image_size", cfg.image_size)
     for key in ("settle_steps", "msaa_samples", "mesh_cell_mm"):
         check_non_negative(f"env.{key}", getattr(cfg, key))
-    return cfg
 
 
 @dataclass

@@ -46,9 +46,9 @@ def _check(cfg: DictConfig) -> None:
         check_positive(key, cfg[key])
     if not cfg.alphas:
         raise UsageError("alphas must be a non-empty list of numbers, e.g. alphas=[-4,4]")
-    if cfg.direction == "probe" and cfg.probes is None:
-        raise UsageError("direction=probe needs probes=<probe run folder from `vlactl train-probes`>")
     if cfg.direction == "probe":
+        if cfg.probes is None:
+            raise UsageError("direction=probe needs probes=<probe run folder from `vlactl train-probes`>")
         stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
 
 
@@ -111,7 +111,11 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     parts = keyed_parts(out, key, results=(SWEEP_NAME, NORMS_NAME))
 
     starts = range(0, len(rows_all), cfg.batch_size)
-    done = [start for start in starts if (parts / f"frames{start:06d}.parquet").is_file()]
+
+    def part(start: int, kind: str = "") -> Path:  # a batch's action changes, or (kind "_norms") its layer norms
+        return parts / f"frames{start:06d}{kind}.parquet"
+
+    done = [start for start in starts if part(start).is_file()]
     if done:
         print(f"resuming: {len(done)} of {len(starts)} batches of frames already swept in {out}", file=sys.stderr)
     per_frame = len(layers) * len(cfg.alphas)
@@ -120,18 +124,15 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
         for start in (start for start in starts if start not in done):
             index = rows_all[start : start + cfg.batch_size]
             changes, norms = _sweep_batch(vla, frame_batch(frames, index), index, layers, units, cfg, bar)
-            atomic_write_parquet(parts / f"frames{start:06d}_norms.parquet", norms)
-            atomic_write_parquet(parts / f"frames{start:06d}.parquet", changes)  # last: marks the batch done
+            atomic_write_parquet(part(start, "_norms"), norms)
+            atomic_write_parquet(part(start), changes)  # last: marks the batch done
     order = {name: i for i, name in enumerate(layers)}
-    sweep = pd.concat([pd.read_parquet(parts / f"frames{start:06d}.parquet") for start in starts], ignore_index=True)
-    sweep.insert(1, "layer_index", sweep["layer"].map(order))
-    atomic_write_parquet(out / SWEEP_NAME, sweep)
-    norm_table = pd.concat([pd.read_parquet(parts / f"frames{start:06d}_norms.parquet") for start in starts],
-                           ignore_index=True)
-    norm_table.insert(1, "layer_index", norm_table["layer"].map(order))
-    atomic_write_parquet(out / NORMS_NAME, norm_table)
+    for kind, name in (("_norms", NORMS_NAME), ("", SWEEP_NAME)):
+        table = pd.concat([pd.read_parquet(part(start, kind)) for start in starts], ignore_index=True)
+        table.insert(1, "layer_index", table["layer"].map(order))
+        atomic_write_parquet(out / name, table)
     save_config(cfg, out)
-    print(f"wrote {out / SWEEP_NAME} ({len(sweep)} rows) and {out / NORMS_NAME}", file=sys.stderr)
+    print(f"wrote {out / SWEEP_NAME} ({len(table)} rows) and {out / NORMS_NAME}", file=sys.stderr)
     return out
 
 

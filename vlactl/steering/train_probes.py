@@ -33,6 +33,11 @@ RESULT_KEYS = ("frames", "test_fraction", "cv_folds", "seed", "ridge_grid", "log
                "robustness_norms", "robustness_directions", "robustness_frames")
 
 
+def _part(out: Path, layer: str) -> Path:
+    """A finished layer's metrics rows, what an interrupted run resumes from (`vlactl.io.keyed_parts`)."""
+    return out / "parts" / f"{layer}.parquet"
+
+
 def probe_filename(layer: str, feature: str) -> str:
     return f"{layer}__{feature}.safetensors"
 
@@ -116,9 +121,8 @@ def run_train_probes(cfg: DictConfig) -> Path:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     key = {"activations": str(store.folder.resolve()), "meta": store.meta, "features": features,
            **{k: resolved[k] for k in RESULT_KEYS}}
-    parts = keyed_parts(out, key, results=(METRICS_NAME, "probes"))
-    (out / "probes").mkdir(exist_ok=True)
-    todo = [name for name in layers if not (parts / f"{name}.parquet").is_file()]
+    keyed_parts(out, key, results=(METRICS_NAME, "probes"))
+    todo = [name for name in layers if not _part(out, name).is_file()]
     if len(todo) < len(layers):
         print(f"resuming: {len(layers) - len(todo)} of {len(layers)} layers already fitted in {out}", file=sys.stderr)
     by_width: dict[int, list[str]] = {}
@@ -132,7 +136,7 @@ def run_train_probes(cfg: DictConfig) -> Path:
                 _fit_batch(cfg, store, batch, features, kinds, y, train, test, folds, settings, out)
                 bar.update(len(batch))
     order = {name: i for i, name in enumerate(FEATURES)}
-    table = pd.concat([pd.read_parquet(parts / f"{name}.parquet") for name in layers])
+    table = pd.concat([pd.read_parquet(_part(out, name)) for name in layers])
     table = table.sort_values(["feature", "layer_index"], key=lambda c: c.map(order) if c.name == "feature" else c)
     table = table.reset_index(drop=True)
     atomic_write_parquet(out / METRICS_NAME, table)
@@ -194,7 +198,7 @@ def _fit_batch(cfg, store, batch, features, kinds, y, train, test, folds, settin
                                  positive=positive, metrics={k: v for k, v in row.items() if isinstance(v, float)})
             save_probe(probe, out / row["probe"])
             rows.append(row)
-        atomic_write_parquet(out / "parts" / f"{layer}.parquet", pd.DataFrame(rows))
+        atomic_write_parquet(_part(out, layer), pd.DataFrame(rows))
 
 
 def steerable_rows(table: pd.DataFrame) -> pd.DataFrame:
