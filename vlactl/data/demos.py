@@ -47,7 +47,8 @@ RECOVERY = Kind("recovery_episodes_per_task", "rec", 100_000, "recovery")
 CLOSED_START = Kind("closed_start_episodes_per_task", "cls", 200_000, "closed_start")
 CLOSED_APPROACH = Kind("closed_approach_episodes_per_task", "cla", 300_000, "closed_approach")
 NOISY = Kind("noisy_episodes_per_task", "noi", 400_000, "noisy")
-KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY)
+PERTURBED = Kind("perturbed_episodes_per_task", "per", 500_000, "perturbed")
+KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY, PERTURBED)
 CLOSED_STEPS = (5, 20)  # closed-start episodes hold the gripper closed this many steps (drawn per episode)
 
 
@@ -200,6 +201,7 @@ def _env(suite: str, task: int, env_cfg: dict):
 
 def _generate_episode(job) -> bool:
     from vlactl.env.features import speeds
+    from vlactl.env.perturbations import random_perturbation
     from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
     suite, task, k, kind, seed, env_cfg, action_noise, staging = job
@@ -223,6 +225,10 @@ def _generate_episode(job) -> bool:
     # A noisy demonstration executes the expert's translation commands plus Gaussian noise while recording the
     # expert's own commands (DART): the states spread around the expert's path, each labelled with the way back.
     noise_rng = np.random.default_rng(seed) if kind == NOISY else None
+    # A perturbed demonstration hands the arm to a perturbation (raised, held, shifted, slowed, gripper closed) for a
+    # stretch of steps, then back to the expert, recording the expert's own commands throughout: the way back from
+    # the states a constraint or a push leaves a policy in (vlactl/env/perturbations.py).
+    perturb = random_perturbation(np.random.default_rng(seed), k).hook() if kind == PERTURBED else None
     start = time.time()
     obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps or closed_approach else "open")
     expert.reset(env, obs)
@@ -236,6 +242,8 @@ def _generate_episode(job) -> bool:
         if noise_rng is not None:
             executed = executed.copy()
             executed[:3] = np.clip(executed[:3] + noise_rng.normal(0.0, action_noise, 3), -1.0, 1.0)
+        if perturb is not None:
+            executed = perturb(t, obs, executed)
         recording = recording or expert.phase == "lift"
         if recording:
             frames["image"].append(obs.images["image"])

@@ -1,0 +1,117 @@
+"""Perturbations of the arm: something else takes over for a stretch of policy steps, then hands control back.
+
+One definition serves both sides of the robustness question: `vlactl rollout perturb=...` measures how often a
+policy still succeeds after it (docs/steering.md), and `vlactl demos perturbed_episodes_per_task=N` records the
+expert finding its way back from it, labelled with the expert's own commands (DART-style), so a policy can learn that
+way back. Each kind maps the policy's (or expert's) 7-D action and the current state to the executed action:
+
+- `raise`: the hand is driven `size` metres (default 0.08) straight up from where the stretch began, then held there;
+- `hold`: the hand is held where the stretch began;
+- `shift`: the hand is driven `size` metres (default 0.05) sideways (world +y) and held there;
+- `slow`: the commanded motion is scaled by `size` (default 1/3);
+- `close`: the gripper is commanded closed, on nothing or whatever is there.
+Positions are servoed with a proportional law on the delta-pose action; rotations are held (zero command) while the
+arm is taken over. The gripper stays the policy's, except under `close`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from vlactl.errors import UsageError
+
+# kind -> (default size, allowed (low, high], what the size means); None: the kind takes no size
+KINDS = {
+    "raise": (0.08, (0.0, 0.2), "metres up"),
+    "hold": (None, None, ""),
+    "shift": (0.05, (0.0, 0.2), "metres sideways"),
+    "slow": (1 / 3, (0.0, 1.0), "speed factor"),
+    "close": (None, None, ""),
+}
+SERVO_GAIN = 14.0  # action units per metre of position error: ~70% of the error per step, as the scripted expert
+CLOSE = 1.0
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    kind: str
+    start: int = 0  # first perturbed policy step
+    steps: int = 15  # how many steps it lasts
+    size: float | None = None  # None: the kind's default
+
+    @property
+    def name(self) -> str:
+        size = "" if self.size is None else f"{self.size:g}"
+        return f"{self.kind}{size and ':' + size}@{self.start}+{self.steps}"
+
+    def active(self, t: int) -> bool:
+        return self.start <= t < self.start + self.steps
+
+    def hook(self):
+        """A step hook for `run_episode` (`hook(t, obs, action) -> action`), fresh per episode: it remembers where
+        the hand was when the stretch began."""
+        anchor = {}
+
+        def perturb(t: int, obs, action: np.ndarray) -> np.ndarray:
+            if not self.active(t):
+                return action
+            pos = np.asarray(obs.state[:3], dtype=np.float64)
+            if "start" not in anchor:
+                anchor["start"] = pos.copy()
+            return self.apply(action, pos, anchor["start"])
+
+        return perturb
+
+    def apply(self, action: np.ndarray, pos: np.ndarray, start_pos: np.ndarray) -> np.ndarray:
+        """The executed action while the perturbation is on, given the hand's position now and when it began."""
+        out = np.array(action, dtype=np.float64)
+        size = KINDS[self.kind][0] if self.size is None else self.size
+        if self.kind == "slow":
+            out[:6] *= size
+        elif self.kind == "close":
+            out[6] = CLOSE
+        else:
+            offset = {"raise": (0.0, 0.0, size), "shift": (0.0, size, 0.0), "hold": (0.0, 0.0, 0.0)}[self.kind]
+            out[:3] = np.clip(SERVO_GAIN * (start_pos + np.asarray(offset) - pos), -1.0, 1.0)
+            out[3:6] = 0.0
+        return out
+
+
+def parse_perturbation(kind: str | None, start: int = 0, steps: int = 15, size: float | None = None,
+                       max_steps: int | None = None) -> Perturbation | None:
+    """`perturb=raise` (+ perturb_start, perturb_steps, perturb_size) -> Perturbation; `none` -> None. Out-of-range
+    values are a one-line UsageError naming what is allowed."""
+    if kind in (None, "", "none"):
+        return None
+    if kind not in KINDS:
+        raise UsageError(f"unknown perturbation {kind!r}; allowed: none, {', '.join(KINDS)}")
+    default, bounds, meaning = KINDS[kind]
+    if size is not None:
+        if bounds is None:
+            raise UsageError(f"perturb={kind} takes no size, got perturb_size={size}")
+        low, high = bounds
+        if not low < float(size) <= high:
+            raise UsageError(f"perturb_size={size} out of range for perturb={kind}: {meaning} in ({low:g}, {high:g}]")
+        size = float(size)
+    if int(start) < 0:
+        raise UsageError(f"perturb_start must be >= 0, got {start}")
+    limit = max_steps if max_steps is not None else 10**9
+    if not 1 <= int(steps) <= limit:
+        raise UsageError(f"perturb_steps must be in 1..{limit}, got {steps}")
+    if int(start) >= limit:
+        raise UsageError(f"perturb_start={start} is past the episode's {limit} steps")
+    return Perturbation(kind, int(start), int(steps), size)
+
+
+def random_perturbation(rng: np.random.Generator, index: int) -> Perturbation:
+    """The perturbation of the demonstration set's `index`-th perturbed episode: the kinds in turn, so every kind is
+    equally represented; start, length and size drawn around what the closed-loop constraints do to a policy (the
+    first 15-25 steps; a hand 5-10 cm off its path)."""
+    kind = list(KINDS)[index % len(KINDS)]
+    start = int(rng.integers(0, 30, endpoint=True))
+    steps = int(rng.integers(10, 25, endpoint=True))
+    size = {"raise": rng.uniform(0.04, 0.10), "shift": rng.uniform(0.03, 0.07) * rng.choice([-1.0, 1.0]),
+            "slow": rng.uniform(0.2, 0.5)}.get(kind)
+    return Perturbation(kind, start, steps, None if size is None else float(size))
