@@ -1,6 +1,7 @@
 """LIBERO env step and render timings on libero_spatial task 0 (CPU rendering through Mesa).
 
-    python benchmarks/bench_env.py                      # the project's settings (conf/env/default.yaml)
+    python benchmarks/bench_env.py                      # the default preset (conf/env/fast.yaml)
+    python benchmarks/bench_env.py --preset standard    # LIBERO's own rendering (conf/env/standard.yaml)
     python benchmarks/bench_env.py --compare            # ... and, interleaved step by step, MuJoCo's stock settings
     python benchmarks/bench_env.py msaa_samples=4 mesh_cell_mm=0 --steps 30   # any EnvConfig field
 
@@ -30,7 +31,7 @@ from vlactl.env.libero_env import CAMERAS, EnvConfig, LiberoEnv  # noqa: E402
 SUITE, TASK = "libero_spatial", 0
 # What LIBERO renders with out of the box (reflections stay off, as in the project since before these levers).
 STOCK = {"msaa_samples": 4, "cull_offscreen": False, "mesh_cell_mm": 0.0}
-DEFAULTS = Path(__file__).resolve().parents[1] / "conf" / "env" / "default.yaml"
+PRESETS = Path(__file__).resolve().parents[1] / "conf" / "env"
 
 
 def parse_overrides(items: list[str]) -> dict:
@@ -76,10 +77,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("overrides", nargs="*", help="EnvConfig FIELD=VALUE")
     parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--preset", default="fast", help="conf/env/<preset>.yaml: fast or standard")
     parser.add_argument("--compare", action="store_true", help="also time MuJoCo's stock render settings")
     args = parser.parse_args()
 
-    cfg = yaml.safe_load(DEFAULTS.read_text()) if DEFAULTS.exists() else {}
+    cfg = yaml.safe_load((PRESETS / f"{args.preset}.yaml").read_text())
     cfg = EnvConfig(**{**cfg, **parse_overrides(args.overrides)})
     variants = {"project": cfg}
     if args.compare:
