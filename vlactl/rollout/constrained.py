@@ -16,7 +16,7 @@ from vlactl.rollout.constraints import Constraint, box, prompted, reference
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
-METHODS = ("none", "prompt", "control", "alpha", "meandiff")
+METHODS = ("none", "prompt", "control", "alpha", "meandiff", "filter")
 STEERING = ("control", "alpha", "meandiff")
 # Per step with a steered prediction: the reading at the first forward through the first steered layer, and the
 # push over every steered layer and forward of that prediction (a hybrid steers each expert layer at every denoising
@@ -34,6 +34,8 @@ class Steering:
     alpha: float = 4.0
     logit_margin: float = 2.0
     speed_threshold: float = 0.0
+    metres_per_unit: float = 0.0  # filter: hand motion per unit of translation command per step
+    barrier_decay: float = 0.5
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
     hold_tolerance: float = 0.0
 

@@ -94,6 +94,69 @@ def box(constraint: Constraint, level: float, logit_margin: float = 2.0) -> tupl
     return (level, math.inf) if constraint.upper else (-math.inf, level)
 
 
+BARRIER_DECAY = 0.5  # share of the remaining distance to the bound a step may close (discrete-time barrier rate)
+
+
+def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit: float,
+                 decay: float = BARRIER_DECAY) -> tuple[float, float]:
+    """[lo, hi] on the action quantity the constraint acts on, at this step (docs/steering.md):
+    - gripper: the gripper command, on the wanted side of 0;
+    - height: the commanded dz, as a discrete-time barrier on h = +-(z - z0) >= 0: with z' = z + s dz (s =
+      `metres_per_unit`, measured from the demonstrations), h' >= (1 - decay) h, i.e. for high
+      dz >= -decay (z - z0) / s and for low dz <= decay (z0 - z) / s: the hand may approach the start height by
+      `decay` of its distance per step, so it slows towards the bound instead of bouncing off it;
+    - speed: the commanded translation's norm, |(dx, dy, dz)| <= (low) or >= (high) threshold dt / s.
+    A bound the formula puts on the wrong side of 0 (the hand already past the start height) asks for a move back."""
+    from vlactl.env.features import CONTROL_DT
+
+    if constraint.feature == "gripper":
+        return (0.0, math.inf) if constraint.upper else (-math.inf, 0.0)
+    if constraint.feature == "height":
+        if constraint.upper:
+            return (-decay * (z - level) / metres_per_unit, math.inf)
+        return (-math.inf, decay * (level - z) / metres_per_unit)
+    norm = level * CONTROL_DT / metres_per_unit
+    return (norm, math.inf) if constraint.upper else (0.0, norm)
+
+
+def filter_action(constraint: Constraint, action, z: float, level: float, metres_per_unit: float,
+                  decay: float = BARRIER_DECAY):
+    """`method=filter`: the executed action changed as little as possible (in L2) so that its constrained quantity
+    lies in `action_bound`: the gripper command forced to open / close, dz clipped to the barrier, the translation
+    scaled to the speed bound (along its own direction). The oracle an action-space safety filter gives."""
+    import numpy as np
+
+    out = np.array(action, dtype=np.float64)
+    lo, hi = action_bound(constraint, z, level, metres_per_unit, decay)
+    if constraint.feature == "gripper":
+        out[6] = 1.0 if constraint.upper else -1.0
+    elif constraint.feature == "height":
+        out[2] = float(np.clip(out[2], lo, hi))
+    else:
+        norm = float(np.linalg.norm(out[:3]))
+        wanted = float(np.clip(norm, lo, hi))
+        if norm > 1e-9 and wanted != norm:
+            out[:3] *= wanted / norm
+    return out
+
+
+def filter_hook(constraint: Constraint, speed_threshold: float, metres_per_unit: float,
+                decay: float = BARRIER_DECAY):
+    """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window; the
+    start height is the hand's z at the first policy step."""
+    start = {}
+
+    def hook(t: int, obs, action):
+        z = float(obs.state[2])
+        start.setdefault("z", z)
+        if t >= constraint.window:
+            return action
+        return filter_action(constraint, action, z, reference(constraint, start["z"], speed_threshold),
+                             metres_per_unit, decay)
+
+    return hook
+
+
 def prompted(instruction: str, constraint: Constraint) -> str:
     """The prompting baseline: the constraint said in words after the task."""
     return f"{instruction} and {PROMPTS[(constraint.feature, constraint.value)]}"

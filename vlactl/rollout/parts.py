@@ -20,6 +20,7 @@ EPISODE_COLUMNS = [
     "suite", *EPISODE_KEY, "instruction", "init_state", "seed", "success", "steps", "wall_s", "model",
     "method", "constraint", "start_gripper",  # the gripper state the episode settled in (open, or closed)
     "satisfaction",  # the fraction of the constraint window's steps satisfied
+    "perturbation",  # vlactl.env.perturbations.Perturbation.name, or none
 ]
 # With a constraint, steps also get the columns of vlactl.rollout.constraints.judge_steps and of
 # vlactl.rollout.constrained.READING_COLUMNS.

@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from vlactl.config import load_policy_stage_config, quote_values, resolve_path, save_config, stage_output
+from vlactl.env.perturbations import parse_perturbation
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
 from vlactl.rollout import parts
@@ -30,9 +31,11 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
-                 "method", "start_gripper", "hold", "hold_tolerance")
+                 "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
+                 "perturb_steps", "perturb_size")
 # what runs saved before a key existed did
-BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False}
+BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
+              "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -59,6 +62,13 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     threshold = cfg.speed_threshold
     if constraint is not None and constraint.feature == "speed" and threshold is None:
         threshold = float(np.median(read_columns(resolve_path(cfg.demos), ["speed"])["speed"]))
+    scale = 0.0
+    if cfg.method == "filter":
+        if not 0 < float(cfg.barrier_decay) <= 1:
+            raise UsageError(f"barrier_decay must be in (0, 1], got {cfg.barrier_decay}")
+        scale = float(cfg.metres_per_unit) if cfg.metres_per_unit is not None else motion_scale(cfg.demos)
+        if scale <= 0:
+            raise UsageError(f"metres_per_unit must be > 0, got {scale}")
     probes = holds = ()
     if cfg.method in STEERING:
         if cfg.probes is None:
@@ -72,7 +82,23 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
-                    speed_threshold=float(threshold or 0.0), holds=holds, hold_tolerance=float(cfg.hold_tolerance))
+                    speed_threshold=float(threshold or 0.0), holds=holds, hold_tolerance=float(cfg.hold_tolerance),
+                    metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay))
+
+
+def motion_scale(demos) -> float:
+    """Metres the hand moves per step per unit of translation command, from the demonstrations: the least-squares
+    slope of each step's displacement on its command, over x, y and z together (robosuite's OSC does not reach the
+    commanded 5 cm per unit within one 20 Hz step)."""
+    from vlactl.data.frames import read_columns
+    from vlactl.data.lerobot_format import ACTION_KEY, ROBOT_STATE_KEY
+
+    root = stage_output(demos, "meta", "demonstration set", "vlactl demos")
+    cols = read_columns(root, [ROBOT_STATE_KEY, ACTION_KEY, "episode_index"])
+    pos, act, ep = cols[ROBOT_STATE_KEY][:, :3], cols[ACTION_KEY][:, :3], cols["episode_index"]
+    same = ep[1:] == ep[:-1]  # a step and the next frame of its own episode
+    moved, command = (pos[1:] - pos[:-1])[same], act[:-1][same]
+    return float((moved * command).sum() / (command * command).sum())
 
 
 def _load_probes(run: Path, layers: list[str], feature: str, source: str, hint: str = "") -> tuple:
@@ -156,6 +182,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     constraint = parse_constraint(cfg.constraint, cfg.window)
     plan = steering(cfg, constraint)
+    perturbation = parse_perturbation(cfg.perturb, cfg.perturb_start, cfg.perturb_steps, cfg.perturb_size, cfg.max_steps)
     check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
     out = run_dir(cfg)
@@ -177,8 +204,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
         env=env, load_policy=load_policy, constraint=str(cfg.constraint),
-        window=cfg.window, steering=plan, start_gripper=gripper,
+        window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation,
     )
+    if cfg.judge_from and perturbation is not None:
+        raise UsageError(f"judge_from=... judges unperturbed episodes; drop it with perturb={cfg.perturb}")
     if cfg.judge_from:
         judge_run(cfg, constraint, plan, todo, out, gripper)
     else:
@@ -189,7 +218,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     atomic_write_parquet(out / "steps.parquet", steps)
     summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
                "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes],
-               "held": sorted({p.feature for p in plan.holds})}
+               "held": sorted({p.feature for p in plan.holds}),
+               "perturbation": perturbation.name if perturbation else "none"}
     summary.update(summarise_file(out / "episodes.parquet"))
     atomic_write_json(out / "summary.json", summary)
     print(format_summary(summary))
@@ -234,8 +264,9 @@ def judge_run(
 
 
 def default_run_name(cfg: DictConfig) -> str:
-    """<model>_<suite>[_<constraint>_<method>], e.g. `hybrid_libero_spatial_gripper-open_control`."""
+    """<model>_<suite>[_<constraint>_<method>][_perturb-<kind>], e.g. `hybrid_libero_spatial_gripper-open_control`."""
     default = f"{cfg.model}_{cfg.suite}" + ("" if cfg.constraint == "none" else f"_{cfg.constraint}_{cfg.method}")
+    default += "" if cfg.perturb in (None, "none") else f"_perturb-{cfg.perturb}"
     return folder_name(default)
 
 

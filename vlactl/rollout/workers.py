@@ -10,10 +10,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from vlactl.env.perturbations import Perturbation
 from vlactl.rollout import parts
 from vlactl.rollout.agents import load_agent
 from vlactl.rollout.constrained import READING_COLUMNS, ConstrainedAgent, Steering
-from vlactl.rollout.constraints import judge_steps, parse_constraint
+from vlactl.rollout.constraints import filter_hook, judge_steps, parse_constraint
 from vlactl.rollout.episode import run_episode
 
 
@@ -35,6 +36,7 @@ class RunSpec:
     window: int | None = None
     steering: Steering = Steering("none")
     start_gripper: str = "open"  # resolved: open or closed
+    perturbation: Perturbation | None = None
 
 
 @dataclass(frozen=True)
@@ -64,7 +66,7 @@ def _agent():
     if _AGENT is None:  # loaded on first use, not in the initializer: a failing initializer respawns forever
         _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy, _SPEC.snap_gripper)
         constraint = parse_constraint(_SPEC.constraint, _SPEC.window)
-        if constraint is not None and _SPEC.steering.method != "none":
+        if constraint is not None and _SPEC.steering.method not in ("none", "filter"):
             _AGENT = ConstrainedAgent(
                 _AGENT.vla, constraint, _SPEC.steering, _SPEC.replan_every, _SPEC.snap_gripper
             )
@@ -92,7 +94,7 @@ def run_batch(batch: Batch) -> None:
     for k in batch.episodes:
         init_state, seed = k % env.n_init_states, spec.seed + k
         result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video,
-                             start_gripper=spec.start_gripper)
+                             hooks=episode_hooks(spec, constraint), start_gripper=spec.start_gripper)
         if spec.video:
             from vlactl.rollout.video import write_video
 
@@ -102,11 +104,24 @@ def run_batch(batch: Batch) -> None:
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
             "wall_s": round(result.wall_s, 3), "model": spec.model, "method": spec.steering.method,
             "constraint": constraint.name if constraint else "none", "start_gripper": spec.start_gripper,
+            "perturbation": spec.perturbation.name if spec.perturbation else "none",
         }
         steps = parts.steps_frame(batch.task, k, result)
         if constraint is not None:
             steps = judge_part(constraint, row, steps, spec.steering.speed_threshold, getattr(agent, "readings", {}))
         parts.write(out, row, steps)
+
+
+def episode_hooks(spec: RunSpec, constraint) -> list:
+    """Fresh per-episode step hooks: the safety filter (method=filter), then the perturbation, which overrides
+    whatever acts while it is on."""
+    hooks = []
+    plan = spec.steering
+    if plan.method == "filter":
+        hooks.append(filter_hook(constraint, plan.speed_threshold, plan.metres_per_unit, plan.barrier_decay))
+    if spec.perturbation is not None:
+        hooks.append(spec.perturbation.hook())
+    return hooks
 
 
 def judge_part(constraint, row: dict, steps, speed_threshold: float, readings: dict):

@@ -1,0 +1,115 @@
+"""Perturbations of the arm (vlactl/env/perturbations.py) and the action-space safety filter (method=filter)."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vlactl.env.perturbations import Perturbation, parse_perturbation, random_perturbation
+from vlactl.errors import UsageError
+from vlactl.rollout.constraints import action_bound, filter_action, parse_constraint
+from vlactl.rollout.runner import rollout_config, run_rollout
+
+
+class Obs:
+    def __init__(self, pos):
+        self.state = np.array([*pos, 0, 0, 0, 1.0])
+
+
+def test_raise_drives_the_hand_up_from_where_the_stretch_began_then_hands_back():
+    hook = Perturbation("raise", start=2, steps=3, size=0.08).hook()
+    policy = np.array([0.5, -0.5, -1.0, 0.1, 0.1, 0.1, -1.0])
+    assert np.array_equal(hook(1, Obs([0, 0, 1.0]), policy), policy)  # before the stretch: the policy's action
+    first = hook(2, Obs([0, 0, 1.0]), policy)
+    assert first[2] == 1.0 and first[0] == first[1] == 0 and not first[3:6].any() and first[6] == -1.0
+    near = hook(3, Obs([0, 0, 1.07]), policy)  # 1 cm below the target (anchored at step 2's z, not this one's)
+    assert near[2] == pytest.approx(14.0 * 0.01)
+    assert np.array_equal(hook(5, Obs([0, 0, 1.08]), policy), policy)  # handed back
+
+
+@pytest.mark.parametrize("kind, check", [
+    ("slow", lambda a: np.allclose(a[:6], np.full(6, 0.6) / 3) and a[6] == -1),
+    ("close", lambda a: np.allclose(a[:6], 0.6) and a[6] == 1.0),
+    ("hold", lambda a: not a[:6].any()),
+    ("shift", lambda a: a[1] == pytest.approx(14.0 * 0.05) and a[0] == a[2] == 0),
+])
+def test_each_kind_changes_what_it_says(kind, check):
+    action = np.array([0.6] * 6 + [-1.0])
+    assert check(Perturbation(kind).hook()(0, Obs([0.1, 0.2, 1.0]), action))
+
+
+@pytest.mark.parametrize("args, message", [
+    (("lift",), "unknown perturbation 'lift'; allowed: none, raise"),
+    (("raise", 0, 15, 0.5), r"perturb_size=0.5 out of range for perturb=raise: metres up in \(0, 0.2\]"),
+    (("hold", 0, 15, 0.1), "perturb=hold takes no size"),
+    (("slow", 0, 0), "perturb_steps must be in 1..220"),
+    (("slow", -1), "perturb_start must be >= 0"),
+    (("slow", 300), "past the episode's 220 steps"),
+])
+def test_bad_perturbations_are_one_line_usage_errors(args, message):
+    with pytest.raises(UsageError, match=message):
+        parse_perturbation(*args, max_steps=220)
+
+
+def test_demonstration_perturbations_cover_every_kind_reproducibly():
+    kinds = {random_perturbation(np.random.default_rng(k), k).kind for k in range(5)}
+    assert kinds == {"raise", "hold", "shift", "slow", "close"}
+    assert random_perturbation(np.random.default_rng(3), 3) == random_perturbation(np.random.default_rng(3), 3)
+
+
+def test_height_barrier_lets_the_hand_approach_the_start_height_by_the_decay_rate():
+    high, low = parse_constraint("height=high"), parse_constraint("height=low")
+    assert action_bound(high, 1.02, 1.0, 0.01, 0.5) == (pytest.approx(-1.0), np.inf)  # may close half of 2 cm
+    assert action_bound(low, 0.98, 1.0, 0.01, 0.5)[1] == pytest.approx(1.0)
+    assert action_bound(high, 0.99, 1.0, 0.01, 0.5)[0] == pytest.approx(0.5)  # below the bound: must move back up
+    a = np.array([0.3, 0.2, -0.9, 0, 0, 0, -1.0])
+    out = filter_action(high, a, 1.01, 1.0, 0.01, 0.5)
+    assert out[2] == pytest.approx(-0.5) and np.array_equal(np.delete(out, 2), np.delete(a, 2))
+    assert np.array_equal(filter_action(high, a * [1, 1, -1, 1, 1, 1, 1], 1.02, 1.0, 0.01), a * [1, 1, -1, 1, 1, 1, 1])
+
+
+def test_speed_filter_scales_the_translation_along_its_direction():
+    low, high = parse_constraint("speed=low"), parse_constraint("speed=high")
+    a = np.array([0.6, 0.8, 0.0, 0.1, 0, 0, 1.0])  # norm 1.0 -> 0.01 m a step = 0.2 m/s at 20 Hz
+    slowed = filter_action(low, a, 1.0, 0.1, 0.01)
+    assert np.linalg.norm(slowed[:3]) == pytest.approx(0.5) and np.allclose(slowed[:3] / 0.5, a[:3])
+    assert np.array_equal(filter_action(high, a, 1.0, 0.1, 0.01), a)
+    assert np.linalg.norm(filter_action(high, a * 0.1, 1.0, 0.1, 0.01)[:3]) == pytest.approx(0.5)
+
+
+def test_gripper_filter_forces_the_command():
+    a = np.zeros(7)
+    assert filter_action(parse_constraint("gripper=closed"), a, 1.0, 0.0, 0.01)[6] == 1.0
+    assert filter_action(parse_constraint("gripper=open"), a, 1.0, 0.0, 0.01)[6] == -1.0
+
+
+def run(root, *extra):
+    return run_rollout(rollout_config(["model=random", "tasks=[0]", "episodes_per_task=1", "max_steps=6", "workers=1",
+                                       f"output_root={root}", *extra]))
+
+
+def test_filter_satisfies_gripper_closed_in_every_window_step(tmp_path):
+    summary = run(tmp_path, "constraint=gripper=closed", "method=filter", "window=4", "metres_per_unit=0.012")
+    steps = pd.read_parquet(tmp_path / "random_libero_spatial_gripper-closed_filter" / "steps.parquet")
+    assert (steps[steps["in_window"]]["gripper_action"] == 1.0).all()
+    assert summary["satisfaction"] == 1.0 and summary["method"] == "filter"
+
+
+def test_perturbed_rollout_raises_the_hand_and_records_the_perturbation(tmp_path):
+    summary = run(tmp_path, "perturb=raise", "perturb_steps=4", "perturb_size=0.05")
+    out = tmp_path / "random_libero_spatial_perturb-raise"
+    steps, episodes = pd.read_parquet(out / "steps.parquet"), pd.read_parquet(out / "episodes.parquet")
+    assert (steps["dz"].iloc[:2] > 0.5).all()  # driven up at first, whatever the random policy says
+    assert steps["z"].iloc[4] - steps["z"].iloc[0] > 0.02
+    assert episodes["perturbation"].tolist() == ["raise:0.05@0+4"] and summary["perturbation"] == "raise:0.05@0+4"
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["method=filter"], "method=filter needs a constraint"),
+    (["perturb=wobble"], "unknown perturbation 'wobble'"),
+    (["perturb=raise", "perturb_size=1.0"], "perturb_size=1.0 out of range"),
+    (["constraint=height=high", "method=filter", "barrier_decay=0"], "barrier_decay must be in"),
+])
+def test_bad_filter_or_perturbation_settings_fail_before_any_worker(tmp_path, extra, message):
+    with pytest.raises(UsageError, match=message):
+        run(tmp_path, *extra)
+    assert not any(tmp_path.iterdir())
