@@ -91,12 +91,16 @@ def load_policy_stage_config(stage: str, overrides: list[str] | None = None) -> 
     `conf/model/` is a config group (the architectures `train-policy` builds), so Hydra would read `model=x` as
     choosing a file of that group; in these stages `model` is a plain string: a registry name or a checkpoint path.
     Options of a real model's adapter come as `model.<option>=<value>` (e.g. `model.checkpoint=<path>`) and land
-    in `cfg.model_args`, which `vlactl.models.registry.policy_loader` binds.
+    in `cfg.model_args`, which `vlactl.models.registry.policy_loader` binds. A real model renders with its adapter's
+    env preset unless `env=<preset>` is given.
     """
+    from vlactl.render_presets import stage_env_override
+
     overrides = list(overrides or [])
     models = [item.split("=", 1)[1] for item in overrides if item.startswith("model=")]
     options = [item.split(".", 1)[1] for item in overrides if item.startswith("model.")]
-    cfg = load_config(stage, [item for item in overrides if not item.startswith(("model=", "model."))])
+    rest = [item for item in overrides if not item.startswith(("model=", "model."))]
+    cfg = load_config(stage, (stage_env_override(stage, models[-1], rest) if models else []) + rest)
     if models:
         cfg.model = models[-1]
     if options:

@@ -41,6 +41,7 @@ class LeRobotFlowVLA(StackedLayers):
     policy_target = ""  # "module:Class" of the LeRobot policy
     steps_field = "num_steps"  # the config field holding the number of denoising steps
     kv_source = "backbone"  # SmolVLA's and π0.5's experts attend to each VLM layer's keys/values
+    env_preset = "standard"  # LeRobot's LIBERO checkpoints were trained on LIBERO's own renders (vlactl.render_presets)
 
     def __init__(self, policy, preprocessor, postprocessor, cameras: dict[str, str] | None = None,
                  replan_every: int | None = None):

@@ -74,6 +74,7 @@ def centre_crop(image: Image.Image, area: float = 0.9) -> Image.Image:
 class OpenVLAAdapter(StackedLayers):
     name = "openvla"
     chunk_size = replan_every = 1
+    env_preset = "standard"  # its LIBERO fine-tunes were trained on LIBERO's own renders (vlactl.render_presets)
 
     def __init__(self, model, processor, norm_stats: dict, unnorm_key: str | None = None, prompt: str = PROMPT,
                  append_token: int | None = EMPTY_TOKEN, crop: bool = True):

@@ -41,6 +41,11 @@ def policy_class(name: str):
     return _import(MODELS[name])
 
 
+def adapter_class(name: str):
+    """A real VLA's adapter class (`ADAPTERS`)."""
+    return _import(ADAPTERS[name])
+
+
 def checkpoint_folder(path: Path) -> Path | None:
     """The checkpoint inside `path` (a checkpoint or a training run folder), or None."""
     from vlactl.models.parts.policy import CONFIG_FILE
@@ -57,7 +62,7 @@ def load_policy(name_or_path: str, **options):
     from vlactl.models.parts.policy import read_model_name
 
     if name_or_path in ADAPTERS:
-        return _import(ADAPTERS[name_or_path]).load(**options)
+        return adapter_class(name_or_path).load(**options)
     if options:
         raise UsageError(
             f"model options {', '.join(f'model.{k}' for k in options)} apply only to a real model "

@@ -190,6 +190,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 
     # Load once here, before any worker starts: a bad model name fails in one line, and we learn its settings.
     agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
+    from vlactl.render_presets import warn_if_rendered_otherwise
+    warn_if_rendered_otherwise(str(cfg.model), getattr(agent, "vla", None), env)
     for probe in plan.probes + plan.holds:  # here, not in a worker after its start-up; rollouts steer at "prefix"
         probe.check_fits(agent.vla.name, agent.vla.layer_width(probe.layer), "prefix")
     policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,

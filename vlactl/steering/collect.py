@@ -135,6 +135,8 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     torch.set_num_threads(cfg.threads)
     fix_mmap_threshold()
     vla = (load_policy or policy_loader(cfg))(str(cfg.model))
+    from vlactl.render_presets import warn_if_rendered_otherwise
+    warn_if_rendered_otherwise(str(cfg.model), vla, dataset=resolve_path(cfg.dataset))
     layers = choose_layers(vla, cfg.layers)
     root = resolve_path(cfg.dataset)
     out = ensure_writable_dir(resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg), cfg.output_dir)

@@ -97,6 +97,8 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     _check(cfg)
     torch.set_num_threads(cfg.threads)
     vla = (load_policy or policy_loader(cfg))(str(cfg.model))
+    from vlactl.render_presets import warn_if_rendered_otherwise
+    warn_if_rendered_otherwise(str(cfg.model), vla, dataset=resolve_path(cfg.dataset))
     layers = choose_layers(vla, cfg.layers)
     units = directions(cfg, vla, layers)
     frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))

@@ -62,6 +62,7 @@ class Run:
         self.step, self.curve, self.train_s = 0, [], 0.0
 
     def save(self) -> None:
+        from vlactl.render_presets import dataset_env
         from vlactl.training.provenance import environment, git_commit
 
         with atomic_dir(self.out / CHECKPOINT_DIR) as tmp:
@@ -71,6 +72,7 @@ class Run:
                 "dataset_fingerprint": self.frames.fingerprint,
                 "dataset_frames": len(self.frames),
                 "dataset_episodes": int(self.frames.episode.max()) + 1,
+                "env": dataset_env(self.dataset),  # how its images were rendered: stages warn when theirs differ
                 "step": self.step,
                 "seed": self.cfg.seed,
                 "git_commit": git_commit(),
