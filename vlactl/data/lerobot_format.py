@@ -13,6 +13,7 @@ from vlactl.env.features import ACTION_FEATURES, STATE_FEATURES
 # LeRobot's LIBERO key names, so a user's own LIBERO dataset in LeRobot format reads the same way.
 IMAGE_KEY, WRIST_KEY = "observation.images.image", "observation.images.wrist_image"
 STATE_KEY, ACTION_KEY, ROBOT_STATE_KEY = "observation.state", "action", "observation.robot_state"
+STATE_DIM, ACTION_DIM = 8, 7  # LIBERO's state (openpi/LeRobot convention) and action
 
 
 WRITER_THREADS = 2
@@ -23,8 +24,9 @@ def features(image_size: int) -> dict:
     return {
         IMAGE_KEY: img,
         WRIST_KEY: dict(img),
-        STATE_KEY: {"dtype": "float32", "shape": (8,), "names": ["x", "y", "z", "ax", "ay", "az", "q_left", "q_right"]},
-        ACTION_KEY: {"dtype": "float32", "shape": (7,), "names": list(ACTION_FEATURES)},
+        STATE_KEY: {"dtype": "float32", "shape": (STATE_DIM,),
+                    "names": ["x", "y", "z", "ax", "ay", "az", "q_left", "q_right"]},
+        ACTION_KEY: {"dtype": "float32", "shape": (ACTION_DIM,), "names": list(ACTION_FEATURES)},
         ROBOT_STATE_KEY: {"dtype": "float32", "shape": (7,), "names": list(STATE_FEATURES)},
         "speed": {"dtype": "float32", "shape": (1,), "names": ["speed"]},
         "task_id": {"dtype": "int64", "shape": (1,), "names": None},

@@ -60,6 +60,10 @@ class VLA(ABC):
     # None: the command as predicted.
     gripper_levels: tuple[float, ...] | None = None
     device: torch.device = torch.device("cpu")
+    # What it reads from a dataset: these PolicyInput cameras (iterated in order), square images of this side (None:
+    # as stored; its own processor resizes them).
+    cameras = ("image", "wrist_image")
+    image_size: int | None = None
 
     # --- layers -------------------------------------------------------------------------------------------
     @abstractmethod

@@ -14,12 +14,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from vlactl.config import resolve_path, stage_output
-from vlactl.data.frames import load_frames
 from vlactl.errors import UsageError
 from vlactl.io import atomic_write_parquet
 from vlactl.models.base import PolicyInput
 from vlactl.plots.files import check_formats, plt, save_figure
-from vlactl.steering.collect import CAMERAS, frame_batch, spread
+from vlactl.steering.collect import frame_batch, model_frames, spread
 from vlactl.steering.probe_file import load_probe
 from vlactl.steering.steer import Constraint, Steerer
 from vlactl.steering.train_probes import METRICS_NAME, best_layers, probe_filename
@@ -72,7 +71,7 @@ def run_plot_readings(cfg: DictConfig, load_policy=None) -> list[Path]:
     torch.set_num_threads(cfg.threads)
     vla = (load_policy or policy_loader(cfg))(str(cfg.model))
     probe = load_probe(path, model=vla.name, width=vla.layer_width(layer))
-    frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
+    frames = model_frames(vla, resolve_path(cfg.dataset), resolve_path(cfg.cache_dir))
     index_all = spread(len(frames), cfg.frames)
     parts = []
     for start in range(0, len(index_all), cfg.batch_size):

@@ -29,8 +29,6 @@ from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture
 from vlactl.steering.activations import DTYPES, ActivationWriter
 
-CAMERAS = ("image", "wrist_image")  # PolicyInput's keys; each model picks the cameras it reads
-
 
 def _check(cfg: DictConfig) -> None:
     if OmegaConf.is_missing(cfg, "model"):
@@ -97,10 +95,15 @@ def _groups(episodes: np.ndarray, rows: np.ndarray, batch_size: int):
         yield np.concatenate(group)
 
 
+def model_frames(vla, root: Path, cache_dir: Path) -> Frames:
+    """A dataset's frames as this model reads them: its cameras, at its image size (collect, sweep, plot readings)."""
+    return load_frames(root, tuple(vla.cameras), cache_dir, image_size=vla.image_size)
+
+
 def frame_batch(frames: Frames, index: np.ndarray) -> PolicyInput:
     """Dataset frames as one policy input (images from the cache, LIBERO state, instructions)."""
     images = frames.images_at(index)
-    return PolicyInput(images={cam: images[:, k] for k, cam in enumerate(CAMERAS)}, state=frames.state[index],
+    return PolicyInput(images={cam: images[:, k] for k, cam in enumerate(frames.cameras)}, state=frames.state[index],
                        instruction=[frames.tasks[t] for t in frames.task[index]])
 
 
@@ -140,7 +143,7 @@ def run_collect(cfg: DictConfig, load_policy=None) -> Path:
     layers = choose_layers(vla, cfg.layers)
     root = resolve_path(cfg.dataset)
     out = ensure_writable_dir(resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg), cfg.output_dir)
-    frames = load_frames(root, CAMERAS, resolve_path(cfg.cache_dir))
+    frames = model_frames(vla, root, resolve_path(cfg.cache_dir))
     labels = frame_labels(root, frames)
 
     keep = labels["frame_index"].to_numpy() % cfg.every == 0

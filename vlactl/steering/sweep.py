@@ -23,13 +23,12 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config, stage_output
-from vlactl.data.frames import load_frames
 from vlactl.env.features import ACTION_FEATURES
 from vlactl.errors import UsageError, check_choice, check_positive
 from vlactl.io import atomic_write_parquet, ensure_writable_dir, keyed_parts
 from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture, intervene
-from vlactl.steering.collect import CAMERAS, choose_layers, frame_batch, spread
+from vlactl.steering.collect import choose_layers, frame_batch, model_frames, spread
 from vlactl.steering.probe_file import load_probe
 from vlactl.steering.train_probes import METRICS_NAME, probe_filename
 
@@ -101,7 +100,7 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     warn_if_rendered_otherwise(str(cfg.model), vla, dataset=resolve_path(cfg.dataset))
     layers = choose_layers(vla, cfg.layers)
     units = directions(cfg, vla, layers)
-    frames = load_frames(resolve_path(cfg.dataset), CAMERAS, resolve_path(cfg.cache_dir))
+    frames = model_frames(vla, resolve_path(cfg.dataset), resolve_path(cfg.cache_dir))
     rows_all = spread(len(frames), cfg.frames)
     out = resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg)
     ensure_writable_dir(out, cfg.output_dir)

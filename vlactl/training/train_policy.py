@@ -139,7 +139,7 @@ def run_train_policy(cfg: DictConfig) -> Path:
     out = ensure_writable_dir(resolve_path(cfg.output_dir), cfg.output_dir)
     cls = policy_class(cfg.model.name)
     config = cls.config_class.from_dict({k: v for k, v in OmegaConf.to_container(cfg.model).items() if k != "name"})
-    frames = load_frames(dataset, config.cameras, resolve_path(cfg.cache_dir))
+    frames = load_frames(dataset, config.cameras, resolve_path(cfg.cache_dir), config.image_size, config.state_dim)
     resuming = bool(cfg.resume) and (out / STATE_FILE).exists()
 
     random.seed(cfg.seed)

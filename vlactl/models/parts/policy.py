@@ -32,6 +32,7 @@ class EmbeddedPolicy(nn.Module, StackedLayers):
         self.chunk_size = config.chunk_size
         self.replan_every = config.replan_every
         self.gripper_levels = tuple(config.gripper_levels) or None
+        self.cameras, self.image_size = tuple(config.cameras), config.image_size
         self._masks: dict[str, dict[str, torch.Tensor]] = {}
 
     # --- layers ---------------------------------------------------------------------------------------------
