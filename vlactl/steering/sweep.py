@@ -20,15 +20,15 @@ import numpy as np
 import pandas as pd
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config, stage_output
 from vlactl.env.features import ACTION_FEATURES
 from vlactl.errors import UsageError, check_choice, check_positive
-from vlactl.io import atomic_write_parquet, ensure_writable_dir, keyed_parts
+from vlactl.io import atomic_write_parquet, ensure_writable_dir
 from vlactl.models.base import POOLINGS, PolicyInput
 from vlactl.models.hooks import capture, intervene
-from vlactl.steering.collect import choose_layers, frame_batch, model_frames, spread
+from vlactl.steering.collect import choose_layers, frame_batch
+from vlactl.steering.offline import policy_and_frames, predict_chunk, run_batches
 from vlactl.steering.probe_file import load_probe
 from vlactl.steering.train_probes import METRICS_NAME, probe_filename
 
@@ -72,14 +72,8 @@ def directions(cfg: DictConfig, vla, layers: list[str]) -> dict[str, torch.Tenso
 
 def _predict(vla, obs: PolicyInput, layer: str | None = None, u: torch.Tensor | None = None) -> np.ndarray:
     """First action of each predicted chunk, [B, 7], optionally with u added at `layer`."""
-    vla.reset()
-    with torch.inference_mode():
-        if layer is None:
-            chunk = vla.predict_action_chunk(obs)
-        else:
-            with intervene(vla, [layer], lambda _, x: u.to(x.dtype).expand_as(x)):
-                chunk = vla.predict_action_chunk(obs)
-    return chunk[:, 0].float().cpu().numpy()
+    hooks = None if layer is None else intervene(vla, [layer], lambda _, x: u.to(x.dtype).expand_as(x))
+    return predict_chunk(vla, obs, hooks)[:, 0]
 
 
 def default_output(cfg: DictConfig) -> Path:
@@ -91,49 +85,24 @@ def default_output(cfg: DictConfig) -> Path:
 def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
     """Sweep (or resume sweeping) and return the run folder: each batch of frames is a part, written once all its
     layers and alphas are done, which a re-run of the same command skips."""
-    from vlactl.models.registry import policy_loader, weights_fingerprint
-
     _check(cfg)
-    torch.set_num_threads(cfg.threads)
-    vla = (load_policy or policy_loader(cfg))(str(cfg.model))
-    from vlactl.render_presets import warn_if_rendered_otherwise
-    warn_if_rendered_otherwise(str(cfg.model), vla, dataset=resolve_path(cfg.dataset))
+    vla, frames, rows, key = policy_and_frames(cfg, load_policy)
     layers = choose_layers(vla, cfg.layers)
     units = directions(cfg, vla, layers)
-    frames = model_frames(vla, resolve_path(cfg.dataset), resolve_path(cfg.cache_dir))
-    rows_all = spread(len(frames), cfg.frames)
     out = resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg)
     ensure_writable_dir(out, cfg.output_dir)
-    key = {"model": str(cfg.model), "model_args": OmegaConf.to_container(cfg, resolve=True).get("model_args"),
-           "weights": None if load_policy else weights_fingerprint(str(cfg.model)), "dataset": frames.fingerprint,
-           "directions": hashlib.sha256(b"".join(units[name].numpy().tobytes() for name in layers)).hexdigest(),
-           "layers": layers, "alphas": list(cfg.alphas), "pooling": cfg.pooling, "frames": cfg.frames,
-           "batch_size": cfg.batch_size}
-    parts = keyed_parts(out, key, results=(SWEEP_NAME, NORMS_NAME))
-
-    starts = range(0, len(rows_all), cfg.batch_size)
-
-    def part(start: int, kind: str = "") -> Path:  # a batch's action changes, or (kind "_norms") its layer norms
-        return parts / f"frames{start:06d}{kind}.parquet"
-
-    done = [start for start in starts if part(start).is_file()]
-    if done:
-        print(f"resuming: {len(done)} of {len(starts)} batches of frames already swept in {out}", file=sys.stderr)
-    per_frame = len(layers) * len(cfg.alphas)
-    initial = sum(len(rows_all[start : start + cfg.batch_size]) for start in done) * per_frame
-    with tqdm(total=len(rows_all) * per_frame, initial=initial, desc=f"sweep {vla.name}", unit="frame") as bar:
-        for start in (start for start in starts if start not in done):
-            index = rows_all[start : start + cfg.batch_size]
-            changes, norms = _sweep_batch(vla, frame_batch(frames, index), index, layers, units, cfg, bar)
-            atomic_write_parquet(part(start, "_norms"), norms)
-            atomic_write_parquet(part(start), changes)  # last: marks the batch done
+    key |= {"directions": hashlib.sha256(b"".join(units[name].numpy().tobytes() for name in layers)).hexdigest(),
+            "layers": layers, "alphas": list(cfg.alphas), "pooling": cfg.pooling}
+    tables = run_batches(
+        out, key, (SWEEP_NAME, NORMS_NAME), rows, cfg.batch_size, desc=f"sweep {vla.name}",
+        per_frame=len(layers) * len(cfg.alphas),
+        work=lambda index, bar: _sweep_batch(vla, frame_batch(frames, index), index, layers, units, cfg, bar))
     order = {name: i for i, name in enumerate(layers)}
-    for kind, name in (("_norms", NORMS_NAME), ("", SWEEP_NAME)):
-        table = pd.concat([pd.read_parquet(part(start, kind)) for start in starts], ignore_index=True)
+    for table, name in zip(tables, (SWEEP_NAME, NORMS_NAME)):
         table.insert(1, "layer_index", table["layer"].map(order))
         atomic_write_parquet(out / name, table)
     save_config(cfg, out)
-    print(f"wrote {out / SWEEP_NAME} ({len(table)} rows) and {out / NORMS_NAME}", file=sys.stderr)
+    print(f"wrote {out / SWEEP_NAME} ({len(tables[0])} rows) and {out / NORMS_NAME}", file=sys.stderr)
     return out
 
 
