@@ -85,9 +85,14 @@ def rollout(
     probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder, for control and alpha."),
     multirun: bool = MULTIRUN,
 ):
-    """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable)."""
-    from vlactl.rollout.runner import default_run_name, rollout_config, run_rollout
+    """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable).
 
+    `shard=i num_shards=n` runs one slice of the episodes; `vlactl rollout merge <the same overrides>` joins the
+    shards into the run (docs/scale-out.md)."""
+    from vlactl.rollout.runner import default_run_name, merge_run, rollout_config, run_rollout
+
+    merge = bool(overrides) and overrides[0] == "merge"  # a word, not an override: Typer has one argument list here
+    overrides = overrides[1:] if merge else overrides
     given = _overrides(
         overrides, model=model, suite=suite, episodes_per_task=episodes_per_task, workers=workers, video=video,
         run_name=run_name, constraint=constraint, method=method, probes=probes,
@@ -96,7 +101,7 @@ def rollout(
         cfg = rollout_config(items)
         if tag and cfg.run_name is None:
             cfg.run_name = f"{default_run_name(cfg)}_{tag}"
-        run_rollout(cfg)
+        merge_run(cfg) if merge else run_rollout(cfg)
 
 
 @app.command("train-policy")

@@ -22,7 +22,7 @@ from vlactl.config import load_policy_stage_config, quote_values, resolve_path, 
 from vlactl.env.perturbations import parse_perturbation
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
-from vlactl.rollout import parts
+from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
 from vlactl.rollout.constraints import START_GRIPPER, parse_constraint, start_gripper
@@ -168,6 +168,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 
     if OmegaConf.is_missing(cfg, "model"):
         raise UsageError("model is required: model=<registry name or checkpoint path>, e.g. model=scripted")
+    shards.check(cfg.shard, cfg.num_shards)
     if load_policy is None:
         from vlactl.models.registry import policy_loader
 
@@ -186,7 +187,9 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
     out = run_dir(cfg)
-    _check_same_run(cfg, out)
+    where = shards.folder(out, cfg.shard, cfg.num_shards)  # a shard writes only into a folder of its own
+    for folder in dict.fromkeys([out, where, *shards.folders(out)]):  # all hold episodes of this one run
+        _check_same_run(cfg, folder)
 
     # Load once here, before any worker starts: a bad model name fails in one line, and we learn its settings.
     agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
@@ -197,13 +200,18 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,
               "gripper_levels": None if agent.gripper_levels is None else agent.gripper_levels.tolist()}
     del agent
-    ensure_writable_dir(out)
-    save_config(cfg, out)
+    ensure_writable_dir(where)
+    save_config(cfg, where)
 
     keys = [(t, k) for t in tasks for k in range(cfg.episodes_per_task)]
-    todo = [key for key in keys if not parts.is_done(out, *key)]
+    if where == out:  # the whole run takes over the episodes its shards finished
+        shards.adopt(out, shards.sources(out, keys, shards.folders(out)))
+        mine = keys
+    else:  # the shard's slice, less what the run folder already has (merged, or run in one process)
+        mine = [key for key in shards.slice_of(keys, cfg.shard, cfg.num_shards) if not parts.is_done(out, *key)]
+    todo = [key for key in mine if not parts.is_done(where, *key)]
     spec = RunSpec(
-        out=str(out), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
+        out=str(where), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
         env=env, load_policy=load_policy, constraint=str(cfg.constraint),
         window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation,
@@ -211,18 +219,64 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     if cfg.judge_from and perturbation is not None:
         raise UsageError(f"judge_from=... judges unperturbed episodes; drop it with perturb={cfg.perturb}")
     if cfg.judge_from:
-        judge_run(cfg, constraint, plan, todo, out, gripper)
+        judge_run(cfg, constraint, plan, todo, where, gripper)
     else:
-        _run_workers(spec, batches(todo, cfg.workers), out, keys, cfg.workers)
+        _run_workers(spec, batches(todo, cfg.workers), where, mine, cfg.workers)
 
+    head = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
+            "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes],
+            "held": sorted({p.feature for p in plan.holds}),
+            "perturbation": perturbation.name if perturbation else "none"}
+    summary = _write_tables(where, mine, head)
+    if where != out:  # the last shard to finish merges; the others say what the run still lacks
+        try:
+            merge_run(cfg, head)
+        except shards.Incomplete as exc:
+            print(f"not merged yet: {exc}")
+    return summary
+
+
+def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
+    """`vlactl rollout merge <the run's overrides>`, and the last shard to finish: the run folder as the run in one
+    process would have written it, from the parts its shards finished, running no episode. Unless every episode of
+    the run is finished somewhere, it writes nothing and raises `shards.Incomplete` naming the missing ones. `head`:
+    the summary's run fields; by default those a shard saved."""
+    import json
+
+    from vlactl.env.suites import MAX_STEPS, SUITES, resolve_tasks
+
+    if OmegaConf.is_missing(cfg, "model"):
+        raise UsageError("merge needs the run's overrides, model=... included, as its shards were given")
+    check_choice("suite", cfg.suite, SUITES)
+    cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps  # resolved as the shards saved
+    cfg.start_gripper = start_gripper(cfg.start_gripper, parse_constraint(cfg.constraint, cfg.window), cfg.method)
+    out = run_dir(cfg)
+    folders = shards.folders(out)
+    for folder in [out, *folders]:
+        _check_same_run(cfg, folder)
+    keys = [(t, k) for t in resolve_tasks(cfg.suite, cfg.tasks) for k in range(cfg.episodes_per_task)]
+    found = shards.sources(out, keys, folders)
+    missing = [key for key, source in found.items() if source is None]
+    if missing:
+        raise shards.Incomplete(shards.missing_line(out, keys, missing))
+    if head is None:
+        saved = [f / "summary.json" for f in [out, *folders] if (f / "summary.json").is_file()]
+        if not saved:
+            raise UsageError(f"no shard of {out} has finished (no summary.json); re-run one with the same command")
+        head = json.loads(saved[0].read_text())  # its episode statistics are replaced by the run's below
+    shards.adopt(out, found)
+    run = cfg.copy()
+    run.shard, run.num_shards = 0, 1  # the run's config, whichever shard merges
+    save_config(run, out)
+    return _write_tables(out, keys, head)
+
+
+def _write_tables(out: Path, keys: list[tuple[int, int]], head: dict) -> dict:
+    """The episode and step tables of the parts in `out` among `keys`, and the summary: `head`, then the statistics."""
     episodes, steps = parts.merge(out, keys)
     atomic_write_parquet(out / "episodes.parquet", episodes)
     atomic_write_parquet(out / "steps.parquet", steps)
-    summary = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
-               "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes],
-               "held": sorted({p.feature for p in plan.holds}),
-               "perturbation": perturbation.name if perturbation else "none"}
-    summary.update(summarise_file(out / "episodes.parquet"))
+    summary = {**head, **summarise_file(out / "episodes.parquet")}
     atomic_write_json(out / "summary.json", summary)
     print(format_summary(summary))
     print(f"wrote {out}")
