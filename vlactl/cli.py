@@ -1,6 +1,6 @@
 """`vlactl`: the pipeline as Typer subcommands; every config value can also be overridden Hydra-style (key=value).
 
-demos -> train-policy -> collect -> train-probes -> sweep / rollout -> plot
+demos -> train-policy -> collect -> train-probes -> sweep / controllability / rollout -> plot
 """
 
 from __future__ import annotations
@@ -160,6 +160,22 @@ def sweep(
         run_sweep(cfg)
 
 
+@app.command()
+def controllability(
+    overrides: Optional[List[str]] = OVERRIDES,
+    model: Optional[str] = typer.Option(None, "--model", help="Registry name or checkpoint folder."),
+    probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder (vlactl train-probes)."),
+    output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+):
+    """Controllability map: per layer (and group) x feature, how far the controller's push on the reading moves the
+    predicted action feature (gain, R², crossing share); also written into the probe run for rollout (resumable)."""
+    from vlactl.config import load_policy_stage_config
+    from vlactl.steering.controllability import run_controllability
+
+    run_controllability(load_policy_stage_config(
+        "controllability", _overrides(overrides, model=model, probes=probes, output_dir=output_dir)))
+
+
 @app.command("train-probes")
 def train_probes(
     overrides: Optional[List[str]] = OVERRIDES,
@@ -203,6 +219,20 @@ def plot_sweep(
     from vlactl.plots.sweep import run_plot_sweep
 
     run_plot_sweep(load_config("plot_sweep", _overrides(overrides, run_dir=run_dir)))
+
+
+@plot_app.command("controllability")
+def plot_controllability(
+    overrides: Optional[List[str]] = OVERRIDES,
+    run_dir: Optional[str] = typer.Option(None, "--run-dir", help="Controllability run folder."),
+    compare: Optional[str] = typer.Option(None, "--compare", help="A second controllability run, drawn beside it."),
+):
+    """Layer x feature heatmap of the controllability gain (annotated with R²); two runs side by side."""
+    from vlactl.config import load_config
+    from vlactl.plots.controllability import run_plot_controllability
+
+    run_plot_controllability(load_config("plot_controllability", _overrides(overrides, run_dir=run_dir,
+                                                                            compare=compare)))
 
 
 @plot_app.command("rollouts")

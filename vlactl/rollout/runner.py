@@ -50,6 +50,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     import pandas as pd
 
     from vlactl.data.frames import read_columns
+    from vlactl.steering.controllability import controllability_rows
     from vlactl.steering.train_probes import METRICS_NAME
 
     check_choice("method", cfg.method, METHODS)
@@ -76,7 +77,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
         feature = constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
-        layers = _steered_layers(cfg.layers, table[table["feature"] == feature])
+        layers = _steered_layers(cfg.layers, table[table["feature"] == feature], controllability_rows(run, feature))
         probes = _load_probes(run, layers, feature, cfg.probes)
         holds = _hold_probes(cfg, constraint, run, layers)
     meandiff = cfg.method == "meandiff"
@@ -132,16 +133,19 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> t
     return tuple(p for feature in features for p in _load_probes(run, layers, feature, cfg.probes, hint))
 
 
-def _steered_layers(chosen, table: pd.DataFrame) -> list[str]:
+def _steered_layers(chosen, table: pd.DataFrame, control: pd.DataFrame | None = None) -> list[str]:
     """`layers=`: a list of layer names; a group (`backbone`, `expert`: its every steerable layer that has a probe);
-    or null: the best steerable layer."""
-    from vlactl.steering.train_probes import best_layers, steerable_rows
+    or null: the layer or group whose push moves the predicted action most (`control`, the feature's rows of the probe
+    run's `vlactl controllability` table), else (no table, or nothing moved) the best observable steerable layer."""
+    from vlactl.steering.controllability import group_layers, most_controllable
+    from vlactl.steering.train_probes import best_layers
 
     if chosen is None:
-        return list(best_layers(table, steerable=True)["layer"])
+        chosen = most_controllable(control) if control is not None else None
+        if chosen is None:
+            return list(best_layers(table, steerable=True)["layer"])
     if isinstance(chosen, str):
-        group = [layer for layer in dict.fromkeys(steerable_rows(table)["layer"]) if layer.split(".")[0] == chosen]
-        return group or [chosen]
+        return group_layers(table, chosen) or [chosen]
     return list(chosen)
 
 
