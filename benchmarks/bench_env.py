@@ -2,6 +2,7 @@
 
     python benchmarks/bench_env.py                      # the default preset (conf/env/fast.yaml)
     python benchmarks/bench_env.py --preset standard    # LIBERO's own rendering (conf/env/standard.yaml)
+    python benchmarks/bench_env.py --against standard   # ... and, interleaved step by step, another preset
     python benchmarks/bench_env.py --compare            # ... and, interleaved step by step, MuJoCo's stock settings
     python benchmarks/bench_env.py msaa_samples=4 mesh_cell_mm=0 --steps 30   # any EnvConfig field
 
@@ -79,25 +80,31 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--preset", default="fast", help="conf/env/<preset>.yaml: fast or standard")
     parser.add_argument("--compare", action="store_true", help="also time MuJoCo's stock render settings")
+    parser.add_argument("--against", help="also time this preset (unchanged by the overrides)")
     args = parser.parse_args()
 
-    cfg = yaml.safe_load((PRESETS / f"{args.preset}.yaml").read_text())
-    cfg = EnvConfig(**{**cfg, **parse_overrides(args.overrides)})
-    variants = {"project": cfg}
+    def preset(name: str) -> dict:
+        return yaml.safe_load((PRESETS / f"{name}.yaml").read_text())
+
+    cfg = EnvConfig(**{**preset(args.preset), **parse_overrides(args.overrides)})
+    variants = {args.preset: cfg}
     if args.compare:
         variants["stock"] = dataclasses.replace(cfg, **STOCK)
+    if args.against:
+        variants[args.against] = EnvConfig(**preset(args.against))
     envs = {name: LiberoEnv(SUITE, TASK, c, render=True) for name, c in variants.items()}
     times = measure(envs, args.steps)
 
     gl = os.environ.get("MUJOCO_GL"), os.environ.get("LP_NUM_THREADS", "default")
-    print(f"{SUITE} task {TASK}, {args.steps} iterations, {cfg.image_size}x{cfg.image_size}, MUJOCO_GL={gl[0]}, "
+    print(f"{SUITE} task {TASK}, {args.steps} iterations, MUJOCO_GL={gl[0]}, "
           f"LP_NUM_THREADS={gl[1]}, load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     for name, c in variants.items():
-        shown = {k: getattr(c, k) for k in ("msaa_samples", "cull_offscreen", "mesh_cell_mm", "reflections")}
+        keys = ("image_size", "msaa_samples", "cull_offscreen", "mesh_cell_mm", "reflections")
+        shown = {k: getattr(c, k) for k in keys}
         print(f"  {name}: " + " ".join(f"{k}={v}" for k, v in shown.items()))
     header = f"{'ms':28s}" + "".join(f"{name + ' median':>16s}{name + ' p90':>13s}" for name in variants)
     print(header)
-    for key in times["project"]:
+    for key in times[args.preset]:
         row = f"{key:28s}"
         for name in variants:
             v = times[name][key]
