@@ -33,7 +33,7 @@ def rollout(root, *extra):
 
 
 def test_control_keeps_the_steered_reading_in_the_box(probes, tmp_path):
-    summary = rollout(tmp_path, "method=control", f"probes={probes}", "logit_margin=3")
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", "logit_margin=3", "box=state")
     out = tmp_path / "random_libero_spatial_gripper-open_control"
     steps = pd.read_parquet(out / "steps.parquet")
     assert steps["in_window"].tolist() == [True] * 4 + [False] * 2
@@ -47,12 +47,12 @@ def test_control_keeps_the_steered_reading_in_the_box(probes, tmp_path):
 
 
 def test_control_with_held_readings_still_lands_in_the_box(probes, tmp_path):
-    summary = rollout(tmp_path, "method=control", f"probes={probes}", "logit_margin=3", "hold=[dx,dz]")
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", "logit_margin=3", "hold=[dx,dz]", "box=state")
     steps = pd.read_parquet(tmp_path / "random_libero_spatial_gripper-open_control" / "steps.parquet")
     assert (steps.dropna(subset=["reading_after"])["reading_after"] <= -3 + 1e-4).all()
     assert summary["held"] == ["dx", "dz"]
     with pytest.raises(UsageError, match="hold=.* not"):  # a run saved without holds is not resumed with them
-        rollout(tmp_path, "method=control", f"probes={probes}", "hold=[dx]")
+        rollout(tmp_path, "method=control", f"probes={probes}", "hold=[dx]", "box=state")
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -161,3 +161,17 @@ def test_a_layer_group_steers_each_of_its_steerable_layers(probes, tmp_path):
     assert expert
     summary = rollout(tmp_path, "method=control", f"probes={probes}", "layers=expert")
     assert sorted(summary["steered_layers"]) == expert
+
+
+@pytest.mark.parametrize("constraint", ["height=high", "gripper=closed"])
+def test_action_boxes_push_only_when_the_prediction_breaks_the_bound(probes, tmp_path, constraint):
+    rollout(tmp_path, "method=control", f"probes={probes}", f"constraint={constraint}", "layers=[backbone.1]",
+            "metres_per_unit=0.012", "run_name=run")
+    steps = pd.read_parquet(tmp_path / "run" / "steps.parquet").dropna(subset=["bound_lo"])
+    assert steps["t"].tolist() == [0, 2]  # every re-plan in the window is bounded
+    inside = (steps["action_before"] >= steps["bound_lo"]) & (steps["action_before"] <= steps["bound_hi"])
+    assert (steps["passes"][inside] == 0).all() and (steps["passes"][~inside] >= 1).all()
+    pushed = steps[~inside]
+    assert (pushed["action_after"] - pushed["action_before"]).abs().gt(0).all()  # the push reached the actions
+    if constraint == "height=high":  # at the start height the barrier asks for no descent at all
+        assert steps["bound_lo"].iloc[0] == pytest.approx(0.0)

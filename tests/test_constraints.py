@@ -14,7 +14,7 @@ def test_parse_defaults_and_none():
     c = parse_constraint("speed=high")
     assert (c.feature, c.value, c.window, c.probe_feature, c.upper) == ("speed", "high", 25, "speed", True)
     assert parse_constraint("gripper=open", window=5).window == 5
-    assert {parse_constraint(f"{f}={v}").window for f, (vs, _, _) in KINDS.items() for v in vs} == {15, 25}
+    assert {parse_constraint(f"{f}={v}").window for f, (vs, *_) in KINDS.items() for v in vs} == {15, 25}
 
 
 @pytest.mark.parametrize("text", ["gripper=wide", "color=red", "gripper", "height=LOW"])

@@ -114,6 +114,15 @@ class VLA(ABC):
     def reset(self) -> None:
         """Forget any per-episode state (action queues, caches)."""
 
+    def sampling_state(self):
+        """The state of the random numbers predictions draw (a flow model's noise), so that a prediction can be
+        repeated with the same draw: a re-prediction under steering then differs from the unsteered one by the push
+        alone. By default torch's global generator; a model with its own generator returns that one's."""
+        return torch.random.get_rng_state()
+
+    def set_sampling_state(self, state) -> None:
+        torch.random.set_rng_state(state)
+
     def eval(self) -> "VLA":
         return self
 

@@ -41,23 +41,29 @@ class VLAAgent:
 
     def act(self, obs) -> np.ndarray:
         if not self._queue:
-            import torch
-
-            from vlactl.models.base import PolicyInput
-
-            batch = PolicyInput(
-                images={key: img[None] for key, img in obs.images.items()},
-                state=obs.libero_state[None].astype(np.float32),
-                instruction=[self._instruction],
-            )
-            with torch.inference_mode():
-                chunk = self.vla.predict_action_chunk(batch)
-            actions = chunk[0, : self.replan_every].float().cpu().numpy()
-            if self.gripper_levels is not None:
-                nearest = np.abs(actions[:, -1:] - self.gripper_levels).argmin(-1)
-                actions[:, -1] = self.gripper_levels[nearest]
-            self._queue = list(actions)
+            self._queue = list(self.snap(self.predict(obs)))
         return self._queue.pop(0)
+
+    def predict(self, obs) -> np.ndarray:
+        """The next `replan_every` actions [k, 7] as the model predicts them (gripper not snapped)."""
+        import torch
+
+        from vlactl.models.base import PolicyInput
+
+        batch = PolicyInput(
+            images={key: img[None] for key, img in obs.images.items()},
+            state=obs.libero_state[None].astype(np.float32),
+            instruction=[self._instruction],
+        )
+        with torch.inference_mode():
+            chunk = self.vla.predict_action_chunk(batch)
+        return chunk[0, : self.replan_every].float().cpu().numpy()
+
+    def snap(self, actions: np.ndarray) -> np.ndarray:
+        if self.gripper_levels is not None:
+            nearest = np.abs(actions[:, -1:] - self.gripper_levels).argmin(-1)
+            actions[:, -1] = self.gripper_levels[nearest]
+        return actions
 
 
 class ScriptedAgent:

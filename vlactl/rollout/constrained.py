@@ -3,6 +3,12 @@ constrained probe's layers with a `Steerer` at every prediction made inside the 
 the minimal controller, a fixed push along the probe direction, or a fixed push along the difference of the class
 means of the training activations.
 
+`control` with `box=action` (the default) bounds what the policy is about to do: at each re-plan in the window it
+predicts unsteered, and only when the predicted actions break the state-aware bound of `action_bound` (a barrier
+on dz for height) does it predict again with the minimal push that shifts the steering probe's reading by delta at
+every steered layer, delta found by a secant search on the predicted quantity (the same sampling noise each pass), a
+few passes at most. With `box=state` it keeps the probe's reading of the state in a fixed box at every forward.
+
 The box depends on the episode (the start height for `height=`), so it is set at each reset. The agent keeps, per
 step, the probe readings before and after the intervention at the prediction made on that step.
 """
@@ -12,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import Constraint, box, prompted, reference
+from vlactl.rollout.constraints import Constraint, action_bound, action_quantity, box, prompted, reference
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -21,7 +27,11 @@ STEERING = ("control", "alpha", "meandiff")
 # Per step with a steered prediction: the reading at the first forward through the first steered layer, and the
 # push over every steered layer and forward of that prediction (a hybrid steers each expert layer at every denoising
 # step): its summed norm and the share of those forwards it acted in.
-READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share")
+# box=action adds the bounded action quantity before and after the push, its bound at that re-plan, and the number of
+# steered re-predictions it took.
+READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share",
+                   "action_before", "action_after", "bound_lo", "bound_hi", "passes")
+MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
 
 
 @dataclass(frozen=True)
@@ -34,8 +44,10 @@ class Steering:
     alpha: float = 4.0
     logit_margin: float = 2.0
     speed_threshold: float = 0.0
-    metres_per_unit: float = 0.0  # filter: hand motion per unit of translation command per step
+    metres_per_unit: float = 0.0  # filter, box=action: hand motion per unit of translation command per step
     barrier_decay: float = 0.5
+    box: str = "action"  # control: bound the predicted action (action) or the probe's reading of the state (state)
+    passes: int = 3  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
     hold_tolerance: float = 0.0
 
@@ -58,6 +70,7 @@ class ConstrainedAgent(VLAAgent):
         tol = self.steering.hold_tolerance
         held = [ProbeBox(p, -tol, tol, relative=True) for p in self.steering.holds]
         self._boxes = [ProbeBox(p, zmin, zmax) for p in self.steering.probes] + held  # per layer, the constraint first
+        self._held, self._level = held, level
         self._t, self.readings = 0, {}
 
     def act(self, obs):
@@ -65,6 +78,9 @@ class ConstrainedAgent(VLAAgent):
         steer = self.steering.method in STEERING and t < self.constraint.window and not self._queue
         if not steer:
             return super().act(obs)
+        if self.steering.method == "control" and self.steering.box == "action":
+            self._queue = list(self.snap(self._bounded_chunk(obs, t)))
+            return self._queue.pop(0)
         # alpha pushes towards the constraint: up the probe direction for closed/high, down for open/low
         alpha = self.steering.alpha if self.constraint.upper else -self.steering.alpha
         method = "direction" if self.steering.method == "meandiff" else self.steering.method
@@ -75,3 +91,43 @@ class ConstrainedAgent(VLAAgent):
         self.readings[t] = dict(zip(READING_COLUMNS, (first["before"], first["after"], first["u_norm"], first["active"],
                                                       sum(pushes), sum(u > 0 for u in pushes) / len(pushes))))
         return action
+
+    def _bounded_chunk(self, obs, t: int):
+        """The next actions, pushed only if they break this re-plan's action bound (box=action)."""
+        plan, constraint = self.steering, self.constraint
+        lo, hi = action_bound(constraint, float(obs.state[2]), self._level, plan.metres_per_unit, plan.barrier_decay,
+                              self.replan_every)
+        start = self.vla.sampling_state()
+        actions = self.predict(obs)
+        drawn = self.vla.sampling_state()
+        quantity = before = action_quantity(constraint, actions)
+        row = {"action_before": before, "bound_lo": lo, "bound_hi": hi, "passes": 0, "u_norm": 0.0,
+               "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
+        if lo <= before <= hi:
+            self.readings[t] = {**row, "action_after": before}
+            return actions
+        target = lo + 0.01 if before < lo else hi - 0.01  # just inside: the bound is met, not grazed
+        shifts, quantities, shift = [0.0], [before], target - before  # first guess: one reading unit per action unit
+        for _ in range(plan.passes):
+            self.vla.set_sampling_state(start)
+            boxes = [ProbeBox(p, shift, shift, relative=True) for p in plan.probes] + self._held
+            with Steerer(self.vla, boxes, method="control") as steerer:
+                actions = self.predict(obs)
+            quantity = action_quantity(constraint, actions)
+            shifts.append(shift)
+            quantities.append(quantity)
+            if lo <= quantity <= hi:
+                break
+            gain = (quantities[-1] - quantities[-2]) / (shifts[-1] - shifts[-2])
+            wanted = target - quantity
+            # a push that moved the quantity the wrong way or not at all: push twice as hard instead
+            step = wanted / gain if gain * wanted > 0 and abs(gain) > 1e-6 else shift
+            shift = max(-MAX_SHIFT, min(MAX_SHIFT, shift + step))
+        self.vla.set_sampling_state(drawn)
+        first = steerer.log[0]
+        pushes = [e["u_norm"] for e in steerer.log if e["row"] == 0 and e["feature"] == first["feature"]]
+        self.readings[t] = {**row, "reading_before": first["before"], "reading_after": first["after"],
+                            "u_norm": first["u_norm"], "control_active": True, "u_norm_all": sum(pushes),
+                            "active_share": sum(u > 0 for u in pushes) / len(pushes), "action_after": quantity,
+                            "passes": len(shifts) - 1}
+        return actions

@@ -6,9 +6,11 @@ first `window` policy steps (15, 15 and 25 by default). Per step it is *satisfie
 - height: the end-effector z is below (low) / above (high) its value at the episode's first policy step;
 - speed: the end-effector speed is below (low) / above (high) a threshold, by default the median speed of the
   training demonstrations.
-For control, each maps to a box on one probe's reading: the gripper-action logit beyond +-`logit_margin`, the z
-reading on the wanted side of the start height, the speed reading on the wanted side of the threshold. Pure functions:
-no model, no simulator.
+For control, each maps to a box: with `box=action` (the default) on what the policy is about to do, recomputed at
+every re-plan from the current state (`action_bound`: the gripper command's side, a discrete-time barrier on the
+commanded dz, the commanded speed); with `box=state` on one probe's reading of the state: the gripper-action logit
+beyond +-`logit_margin`, the z reading on the wanted side of the start height, the speed reading on the wanted side of
+the threshold. Pure functions: no model, no simulator.
 """
 
 from __future__ import annotations
@@ -18,12 +20,14 @@ from dataclasses import dataclass
 
 from vlactl.errors import UsageError
 
-# feature -> (allowed values, default window, probe feature the controller steers = the step-table column judged)
+# feature -> (allowed values, default window, the step-table column judged = the probe feature box=state steers,
+#             the probe feature box=action steers: a read-out of the action the policy is about to take)
 KINDS = {
-    "gripper": (("open", "closed"), 15, "gripper_action"),
-    "height": (("low", "high"), 15, "z"),
-    "speed": (("low", "high"), 25, "speed"),
+    "gripper": (("open", "closed"), 15, "gripper_action", "gripper_action"),
+    "height": (("low", "high"), 15, "z", "dz"),
+    "speed": (("low", "high"), 25, "speed", "speed"),
 }
+BOXES = ("action", "state")
 PROMPTS = {  # what the prompting baseline appends to the instruction
     ("gripper", "open"): "keep the gripper open",
     ("gripper", "closed"): "keep the gripper closed",
@@ -49,6 +53,10 @@ class Constraint:
         return KINDS[self.feature][2]
 
     @property
+    def action_feature(self) -> str:
+        return KINDS[self.feature][3]
+
+    @property
     def upper(self) -> bool:
         """Whether the constraint keeps the quantity above its reference (closed, high) rather than below it."""
         return self.value in ("closed", "high")
@@ -59,7 +67,7 @@ def parse_constraint(text: str, window: int | None = None) -> Constraint | None:
     if text in (None, "", "none"):
         return None
     feature, sep, value = str(text).partition("=")
-    allowed = ", ".join(f"{f}={'|'.join(values)}" for f, (values, _, _) in KINDS.items())
+    allowed = ", ".join(f"{f}={'|'.join(values)}" for f, (values, *_) in KINDS.items())
     if not sep or feature not in KINDS or value not in KINDS[feature][0]:
         raise UsageError(f"unknown constraint {text!r}; allowed: none, {allowed}")
     window = KINDS[feature][1] if window is None else int(window)
@@ -98,13 +106,15 @@ BARRIER_DECAY = 0.5  # share of the remaining distance to the bound a step may c
 
 
 def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit: float,
-                 decay: float = BARRIER_DECAY) -> tuple[float, float]:
-    """[lo, hi] on the action quantity the constraint acts on, at this step (docs/steering.md):
+                 decay: float = BARRIER_DECAY, steps: int = 1) -> tuple[float, float]:
+    """[lo, hi] on the action quantity the constraint acts on (`action_quantity`), for the next `steps` actions
+    (docs/steering.md):
     - gripper: the gripper command, on the wanted side of 0;
-    - height: the commanded dz, as a discrete-time barrier on h = +-(z - z0) >= 0: with z' = z + s dz (s =
-      `metres_per_unit`, measured from the demonstrations), h' >= (1 - decay) h, i.e. for high
-      dz >= -decay (z - z0) / s and for low dz <= decay (z0 - z) / s: the hand may approach the start height by
-      `decay` of its distance per step, so it slows towards the bound instead of bouncing off it;
+    - height: the mean commanded dz, as a discrete-time barrier on h = +-(z - z0) >= 0: with z' = z + s dz (s =
+      `metres_per_unit`, measured from the demonstrations), h' >= (1 - decay) h per step, i.e. over k steps for high
+      mean dz >= -(1 - (1 - decay)^k) (z - z0) / (k s) (k = 1: dz >= -decay (z - z0) / s), and the mirror image for
+      low: the hand may approach the start height by `decay` of its distance per step, so it slows towards the bound
+      instead of bouncing off it;
     - speed: the commanded translation's norm, |(dx, dy, dz)| <= (low) or >= (high) threshold dt / s.
     A bound the formula puts on the wrong side of 0 (the hand already past the start height) asks for a move back."""
     from vlactl.env.features import CONTROL_DT
@@ -112,11 +122,25 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
     if constraint.feature == "gripper":
         return (0.0, math.inf) if constraint.upper else (-math.inf, 0.0)
     if constraint.feature == "height":
+        rate = (1 - (1 - decay) ** steps) / (steps * metres_per_unit)
         if constraint.upper:
-            return (-decay * (z - level) / metres_per_unit, math.inf)
-        return (-math.inf, decay * (level - z) / metres_per_unit)
+            return (-rate * (z - level), math.inf)
+        return (-math.inf, rate * (level - z))
     norm = level * CONTROL_DT / metres_per_unit
     return (norm, math.inf) if constraint.upper else (0.0, norm)
+
+
+def action_quantity(constraint: Constraint, actions):
+    """What `action_bound` bounds, over the actions about to be executed ([k, 7]): their mean gripper command, mean
+    dz, or mean translation norm."""
+    import numpy as np
+
+    actions = np.asarray(actions, dtype=np.float64).reshape(-1, 7)
+    if constraint.feature == "gripper":
+        return float(actions[:, 6].mean())
+    if constraint.feature == "height":
+        return float(actions[:, 2].mean())
+    return float(np.linalg.norm(actions[:, :3], axis=1).mean())
 
 
 def filter_action(constraint: Constraint, action, z: float, level: float, metres_per_unit: float,

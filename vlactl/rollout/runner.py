@@ -25,17 +25,18 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
-from vlactl.rollout.constraints import START_GRIPPER, parse_constraint, start_gripper
+from vlactl.rollout.constraints import BOXES, START_GRIPPER, parse_constraint, start_gripper
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
                  "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
-                 "perturb_steps", "perturb_size")
+                 "perturb_steps", "perturb_size", "box", "passes")
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
-              "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None}
+              "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
+              "box": "state", "passes": 3}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -63,8 +64,12 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     threshold = cfg.speed_threshold
     if constraint is not None and constraint.feature == "speed" and threshold is None:
         threshold = float(np.median(read_columns(resolve_path(cfg.demos), ["speed"])["speed"]))
+    check_choice("box", cfg.box, BOXES)
+    bounds_actions = cfg.method == "filter" or (cfg.method == "control" and cfg.box == "action")
+    if bounds_actions and int(cfg.passes) < 1:
+        raise UsageError(f"passes must be >= 1, got {cfg.passes}")
     scale = 0.0
-    if cfg.method == "filter":
+    if bounds_actions:
         if not 0 < float(cfg.barrier_decay) <= 1:
             raise UsageError(f"barrier_decay must be in (0, 1], got {cfg.barrier_decay}")
         scale = float(cfg.metres_per_unit) if cfg.metres_per_unit is not None else motion_scale(cfg.demos)
@@ -75,7 +80,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         if cfg.probes is None:
             raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>")
         run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
-        feature = constraint.probe_feature
+        feature = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
         layers = _steered_layers(cfg.layers, table[table["feature"] == feature], controllability_rows(run, feature))
         probes = _load_probes(run, layers, feature, cfg.probes)
@@ -84,7 +89,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=float(threshold or 0.0), holds=holds, hold_tolerance=float(cfg.hold_tolerance),
-                    metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay))
+                    metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
+                    passes=int(cfg.passes))
 
 
 def motion_scale(demos) -> float:
@@ -122,7 +128,8 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> t
     features = list(dict.fromkeys(cfg.hold or []))
     if not features:
         return ()
-    allowed = [f for f in FEATURES if f != constraint.probe_feature]
+    steered = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
+    allowed = [f for f in FEATURES if f != steered]
     for feature in features:
         check_choice("hold feature", feature, allowed)
     if len(features) + 1 > MAX_PROBES:

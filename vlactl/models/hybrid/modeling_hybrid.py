@@ -55,6 +55,12 @@ class HybridPolicy(EmbeddedPolicy):
     def reset(self) -> None:
         self._noise.manual_seed(self.config.noise_seed)
 
+    def sampling_state(self):
+        return self._noise.get_state()
+
+    def set_sampling_state(self, state) -> None:
+        self._noise.set_state(state)
+
     # --- the two halves -------------------------------------------------------------------------------------
     def _run_prefix(self, inputs) -> tuple[DynamicCache, int]:
         x, masks = self.prefix(inputs["images"], inputs["state"], inputs["tokens"], inputs["text_mask"])
