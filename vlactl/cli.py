@@ -87,8 +87,7 @@ def rollout(
 ):
     """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable).
 
-    `shard=i num_shards=n` runs one slice of the episodes; `vlactl rollout merge <the same overrides>` joins the
-    shards into the run (docs/scale-out.md)."""
+    `shard=i num_shards=n` runs one slice of the episodes; `vlactl rollout merge <same overrides>` joins them."""
     from vlactl.rollout.runner import default_run_name, merge_run, rollout_config, run_rollout
 
     merge = bool(overrides) and overrides[0] == "merge"  # a word, not an override: Typer has one argument list here

@@ -20,6 +20,10 @@ from vlactl.rollout import parts
 _FOLDER = re.compile(r"(\d+)-of-(\d+)")
 
 
+class Incomplete(UsageError):
+    """Some of the run's episodes are finished in no folder yet, so the merge writes nothing."""
+
+
 def check(shard, num_shards) -> None:
     def integer(value) -> bool:
         return isinstance(value, int) and not isinstance(value, bool)
@@ -82,8 +86,6 @@ def missing_line(out: Path, keys: list[tuple[int, int]], missing: list[tuple[int
         order = {key: i for i, key in enumerate(sorted(keys))}
         owners = sorted({order[key] % n for key in missing})
         line += f"; re-run shard {', '.join(f'{i}-of-{n}' for i in owners)} with the same command"
+    elif not counts:
+        line += "; no shard has started in it: run them with shard=i num_shards=n"
     return line
-
-
-class Incomplete(UsageError):
-    """Some of the run's episodes are finished in no folder yet, so the merge writes nothing."""
