@@ -82,7 +82,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
         feature = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
-        layers = _steered_layers(cfg.layers, table[table["feature"] == feature], controllability_rows(run, feature))
+        control = controllability_rows(run, feature) if cfg.layers is None else None
+        layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
         probes = _load_probes(run, layers, feature, cfg.probes)
         holds = _hold_probes(cfg, constraint, run, layers)
     meandiff = cfg.method == "meandiff"
