@@ -4,6 +4,7 @@ also after a shard is interrupted and resumed; no episode is lost or run twice; 
 With the registry's tiny random VLA (rendered images, the real model path), 3 episodes of 3 steps."""
 
 import json
+import shutil
 
 import pandas as pd
 import pytest
@@ -28,18 +29,19 @@ def _rows(folder):
 @pytest.fixture(scope="module")
 def sharded(tmp_path_factory):
     """The whole run in one process, then shard 0 of 2, killed before its second episode was saved (its step table
-    written, not its row: the state a kill leaves), shard 1 (not merged: shard 0 lacks one), and shard 0 resumed."""
+    written, not its row: the state a kill leaves), shard 1 (not merged: shard 0 lacks one), and shard 0 resumed.
+    The shards also write videos (not a setting of the run)."""
     root = tmp_path_factory.mktemp("shards")
     whole = run_rollout(_cfg(root, "run_name=whole"))
     out = root / "sharded"
-    run_rollout(_cfg(root, "run_name=sharded", "shard=0", "num_shards=2"))
+    run_rollout(_cfg(root, "run_name=sharded", "shard=0", "num_shards=2", "video=true"))
     first = out / "shards" / "0-of-2"
     parts.stem(first, 0, 2).with_suffix(".json").unlink()
     kept = parts.stem(first, 0, 0).with_suffix(".parquet").stat().st_mtime_ns
-    run_rollout(_cfg(root, "run_name=sharded", "shard=1", "num_shards=2"))
+    run_rollout(_cfg(root, "run_name=sharded", "shard=1", "num_shards=2", "video=true"))
     unmerged = not (out / "episodes.parquet").exists()
     merge = run("rollout", "merge", *BASE, f"output_root={root}", "run_name=sharded")
-    resumed = run_rollout(_cfg(root, "run_name=sharded", "shard=0", "num_shards=2"))
+    resumed = run_rollout(_cfg(root, "run_name=sharded", "shard=0", "num_shards=2", "video=true"))
     return root, whole, out, unmerged, merge, kept, resumed
 
 
@@ -74,6 +76,16 @@ def test_two_shards_merge_to_the_whole_run(sharded):
     assert all(parts.is_done(out, *key) for key in KEYS)  # the run folder resumes and serves judge_from as one run
     ran = [tuple(key) for i in (0, 1) for key in _rows(out / "shards" / f"{i}-of-2")[parts.EPISODE_KEY].values]
     assert sorted(ran) == KEYS  # each episode ran in exactly one shard
+    assert sorted(p.name for p in (out / "videos").iterdir()) == [f"task00_ep000{k}.mp4" for k in range(3)]
+
+
+def test_whole_run_takes_over_the_shards(sharded):
+    """A run without shard= in a folder of finished shards runs nothing: its rows are theirs, wall_s included."""
+    root, _, out, *_ = sharded
+    shutil.copytree(out / "shards", root / "adopted" / "shards")
+    assert run_rollout(_cfg(root, "run_name=adopted"))["episodes"] == 3
+    pd.testing.assert_frame_equal(pd.read_parquet(root / "adopted" / "episodes.parquet"),
+                                  pd.read_parquet(out / "episodes.parquet"))
 
 
 def test_shard_with_other_settings_is_refused(sharded):
