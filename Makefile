@@ -6,7 +6,7 @@ PIP := $(BIN)/python -m pip --disable-pip-version-check -q
 export HF_HUB_OFFLINE := 1
 export MUJOCO_GL ?= egl
 
-.PHONY: install system-deps demo policies paper test test-slow test-real bench clean-venv
+.PHONY: install system-deps demo policies probes paper test test-slow test-real bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -63,6 +63,28 @@ policies: install
 	$(call extended_demos,data/demos/libero_spatial_recovery,episodes_per_task=20 recovery_episodes_per_task=25)
 	$(call extended_demos,data/demos/libero_spatial_noisy,episodes_per_task=50 noisy_episodes_per_task=30)
 	$(foreach m,$(POLICIES),$(call train_policy,$(m)))
+
+# The probes that ship beside each model in data/probes/<model>/ (found by `vlactl rollout --constraint ...` by
+# default): activations on PROBE_DEMOS, the observability probes (observe/, every feature, the best ridge penalty) and
+# the steering probes (steer/: the action read-outs the constraints push, strongly regularised, whose direction moves
+# the actions; docs/steering.md), with the steering probes' controllability table. About 10 min a model on 2 cores.
+PROBE_DEMOS ?= data/demos/libero_spatial_robust
+STEER_FEATURES ?= [dx,dy,dz,speed,gripper_action]
+STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
+define build_probes
+	$(BIN)/vlactl collect model=$(1) dataset=$(PROBE_DEMOS) every=4 output_dir=outputs/probes-build/$(1)/activations
+	$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations output_dir=outputs/probes-build/$(1)/observe
+	$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations output_dir=outputs/probes-build/$(1)/steer \
+	  features=$(STEER_FEATURES) $(STEER_PROBE_ARGS)
+	$(BIN)/vlactl controllability model=$(1) probes=outputs/probes-build/$(1)/steer dataset=$(PROBE_DEMOS)
+	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer; do \
+	  mkdir -p data/probes/$(1).new/$$f && cp -r outputs/probes-build/$(1)/$$f/probes \
+	  outputs/probes-build/$(1)/$$f/*.parquet outputs/probes-build/$(1)/$$f/*.json outputs/probes-build/$(1)/$$f/config.yaml \
+	  data/probes/$(1).new/$$f/; done && rm -rf data/probes/$(1) && mv data/probes/$(1).new data/probes/$(1)
+
+endef
+probes: install
+	$(foreach m,$(POLICIES),$(call build_probes,$(m)))
 
 # The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
 # Fig. 1, sweep and Fig. 2, readings and Fig. 3, rollouts (unconstrained, then every constraint x method) and

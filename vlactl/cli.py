@@ -81,7 +81,7 @@ def rollout(
     run_name: Optional[str] = typer.Option(None, "--run-name", help="Output folder under outputs/rollout/."),
     constraint: Optional[str] = typer.Option(
         None, "--constraint", help="none, gripper=open|closed, height=low|high, speed=low|high."),
-    method: Optional[str] = typer.Option(None, "--method", help="none, prompt, control, alpha or meandiff."),
+    method: Optional[str] = typer.Option(None, "--method", help="none, prompt, control (the default under a constraint), alpha, meandiff or filter."),
     probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder, for control and alpha."),
     multirun: bool = MULTIRUN,
 ):

@@ -119,10 +119,11 @@ class ConstrainedAgent(VLAAgent):
             if lo <= quantity <= hi:
                 break
             gain = (quantities[-1] - quantities[-2]) / (shifts[-1] - shifts[-2])
-            wanted = target - quantity
-            # a push that moved the quantity the wrong way or not at all: push twice as hard instead
-            step = wanted / gain if gain * wanted > 0 and abs(gain) > 1e-6 else shift
-            shift = max(-MAX_SHIFT, min(MAX_SHIFT, shift + step))
+            # the secant step; a push that moved the quantity not at all: push twice as hard instead
+            step = (target - quantity) / gain if abs(gain) > 1e-6 else shift
+            shift, last = max(-MAX_SHIFT, min(MAX_SHIFT, shift + step)), shift
+            if shift == last:  # at the largest shift allowed: the least-violating push found
+                break
         self.vla.set_sampling_state(drawn)
         first = steerer.log[0]
         pushes = [e["u_norm"] for e in steerer.log if e["row"] == 0 and e["feature"] == first["feature"]]

@@ -18,7 +18,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from vlactl.config import load_policy_stage_config, quote_values, resolve_path, save_config, stage_output
+from vlactl.config import REPO_ROOT, load_policy_stage_config, quote_values, resolve_path, save_config, stage_output
 from vlactl.env.perturbations import parse_perturbation
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
@@ -47,66 +47,103 @@ def rollout_config(overrides: list[str] | None = None) -> DictConfig:
 
 def steering(cfg: DictConfig, constraint) -> Steering:
     """The run's intervention: method, and for control/alpha the probes of the constraint's feature at the chosen
-    layers (by default its best layer in the probe run's metrics)."""
+    layers (by default the most controllable layer or group, else the best observable layer, of the probe run)."""
     import pandas as pd
 
-    from vlactl.data.frames import read_columns
     from vlactl.steering.controllability import controllability_rows
     from vlactl.steering.train_probes import METRICS_NAME
 
     check_choice("method", cfg.method, METHODS)
+    check_choice("box", cfg.box, BOXES)
     if cfg.method != "none" and constraint is None:
         raise UsageError(f"method={cfg.method} needs a constraint, e.g. constraint=gripper=open")
     if cfg.method != "none" and cfg.model == SCRIPTED:
         raise UsageError(f"method={cfg.method} needs a VLA; the scripted expert takes no instruction or steering")
     if cfg.hold and cfg.method != "control":
         raise UsageError(f"hold={list(cfg.hold)} needs method=control, not {cfg.method!r}")
-    threshold = cfg.speed_threshold
-    if constraint is not None and constraint.feature == "speed" and threshold is None:
-        threshold = float(np.median(read_columns(resolve_path(cfg.demos), ["speed"])["speed"]))
-    check_choice("box", cfg.box, BOXES)
     bounds_actions = cfg.method == "filter" or (cfg.method == "control" and cfg.box == "action")
     if bounds_actions and int(cfg.passes) < 1:
         raise UsageError(f"passes must be >= 1, got {cfg.passes}")
-    scale = 0.0
-    if bounds_actions:
-        if not 0 < float(cfg.barrier_decay) <= 1:
-            raise UsageError(f"barrier_decay must be in (0, 1], got {cfg.barrier_decay}")
-        scale = float(cfg.metres_per_unit) if cfg.metres_per_unit is not None else motion_scale(cfg.demos)
+    if bounds_actions and not 0 < float(cfg.barrier_decay) <= 1:
+        raise UsageError(f"barrier_decay must be in (0, 1], got {cfg.barrier_decay}")
+    run = probes_run(cfg) if cfg.method in STEERING else None
+    if run is not None:
+        _check_probe_weights(run, str(cfg.model))
+    threshold = scale = 0.0
+    if constraint is not None and constraint.feature == "speed":
+        threshold = demo_constant(cfg, "speed_threshold", run)
+    if bounds_actions and constraint.feature != "gripper":
+        scale = demo_constant(cfg, "metres_per_unit", run)
         if scale <= 0:
             raise UsageError(f"metres_per_unit must be > 0, got {scale}")
     probes = holds = ()
-    if cfg.method in STEERING:
-        if cfg.probes is None:
-            raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>")
-        run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
+    if run is not None:
         feature = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
         control = controllability_rows(run, feature) if cfg.layers is None else None
         layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
-        probes = _load_probes(run, layers, feature, cfg.probes)
+        probes = _load_probes(run, layers, feature, str(run))
         holds = _hold_probes(cfg, constraint, run, layers)
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
-                    speed_threshold=float(threshold or 0.0), holds=holds, hold_tolerance=float(cfg.hold_tolerance),
+                    speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
                     metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
                     passes=int(cfg.passes))
 
 
-def motion_scale(demos) -> float:
-    """Metres the hand moves per step per unit of translation command, from the demonstrations: the least-squares
-    slope of each step's displacement on its command, over x, y and z together (robosuite's OSC does not reach the
-    commanded 5 cm per unit within one 20 Hz step)."""
-    from vlactl.data.frames import read_columns
-    from vlactl.data.lerobot_format import ACTION_KEY, ROBOT_STATE_KEY
+def probes_run(cfg: DictConfig) -> Path:
+    """`probes=`, or by default the probes shipped for the model: `data/probes/<model>/steer` (strongly regularised,
+    for control on the actions, alpha and meandiff) or `.../observe` (the observability probes, for box=state)."""
+    from vlactl.steering.train_probes import METRICS_NAME
 
-    root = stage_output(demos, "meta", "demonstration set", "vlactl demos")
-    cols = read_columns(root, [ROBOT_STATE_KEY, ACTION_KEY, "episode_index"])
-    pos, act, ep = cols[ROBOT_STATE_KEY][:, :3], cols[ACTION_KEY][:, :3], cols["episode_index"]
-    same = ep[1:] == ep[:-1]  # a step and the next frame of its own episode
-    moved, command = (pos[1:] - pos[:-1])[same], act[:-1][same]
-    return float((moved * command).sum() / (command * command).sum())
+    if cfg.probes is not None:
+        return stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
+    family = "observe" if cfg.method == "control" and cfg.box == "state" else "steer"
+    shipped = REPO_ROOT / "data" / "probes" / Path(str(cfg.model)).name / family
+    if not (shipped / METRICS_NAME).is_file():
+        raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>; none ship "
+                         f"for model {cfg.model!r} (shipped: {', '.join(shipped_probe_models()) or 'none'})")
+    return shipped
+
+
+def _check_probe_weights(run: Path, model: str) -> None:
+    """Probes fitted on other weights of the same model name (a retrained checkpoint) read nothing: refused."""
+    import json
+
+    from vlactl.models.registry import weights_fingerprint
+    from vlactl.steering.train_probes import PROBE_PROVENANCE
+
+    recorded = run / PROBE_PROVENANCE
+    fitted = json.loads(recorded.read_text()).get("weights") if recorded.is_file() else None
+    current = weights_fingerprint(model) if fitted else None
+    if fitted and current and fitted != current:
+        raise UsageError(f"the probes in {str(run)!r} were fitted on weights {fitted} of {model!r}, not on its weights "
+                         f"now ({current}); refit them (`make probes`, or collect + train-probes)")
+
+
+def shipped_probe_models() -> list[str]:
+    return sorted(p.name for p in (REPO_ROOT / "data" / "probes").glob("*") if p.is_dir())
+
+
+def demo_constant(cfg: DictConfig, key: str, run: Path | None) -> float:
+    """speed_threshold / metres_per_unit: as given, else measured from `demos` when it is on disk, else the value the
+    probe run recorded from its own demonstrations (vlactl.data.motion)."""
+    import json
+
+    from vlactl.data import motion
+    from vlactl.steering.train_probes import PROBE_PROVENANCE
+
+    if cfg[key] is not None:
+        return float(cfg[key])
+    demos = resolve_path(cfg.demos)
+    if (demos / "meta").is_dir():
+        return motion.speed_median(demos) if key == "speed_threshold" else motion.metres_per_unit(demos)
+    recorded = run / PROBE_PROVENANCE if run is not None else None
+    if recorded is not None and recorded.is_file() and key in json.loads(recorded.read_text()):
+        return float(json.loads(recorded.read_text())[key])
+    raise UsageError(f"{key} is measured from the demonstrations, and demos={cfg.demos!r} is no demonstration set; "
+                     f"make it with `vlactl demos` (about 50 min on 2 cores) or give {key}=...")
 
 
 def _load_probes(run: Path, layers: list[str], feature: str, source: str, hint: str = "") -> tuple:
@@ -138,7 +175,7 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> t
     if float(cfg.hold_tolerance) < 0:
         raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
     hint = "; train it with `vlactl train-probes features=[...]` on the same activations"
-    return tuple(p for feature in features for p in _load_probes(run, layers, feature, cfg.probes, hint))
+    return tuple(p for feature in features for p in _load_probes(run, layers, feature, str(run), hint))
 
 
 def _steered_layers(chosen, table: pd.DataFrame, control: pd.DataFrame | None = None) -> list[str]:
@@ -194,9 +231,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     check_env_config(env)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     constraint = parse_constraint(cfg.constraint, cfg.window)
+    check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
+    cfg.method = resolved_method(cfg)
     plan = steering(cfg, constraint)
     perturbation = parse_perturbation(cfg.perturb, cfg.perturb_start, cfg.perturb_steps, cfg.perturb_size, cfg.max_steps)
-    check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
     out = run_dir(cfg)
     where = shards.folder(out, cfg.shard, cfg.num_shards)  # a shard writes only into a folder of its own
@@ -261,6 +299,7 @@ def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
         raise UsageError("merge needs the run's overrides, model=... included, as its shards were given")
     check_choice("suite", cfg.suite, SUITES)
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps  # resolved as the shards saved
+    cfg.method = resolved_method(cfg)
     cfg.start_gripper = start_gripper(cfg.start_gripper, parse_constraint(cfg.constraint, cfg.window), cfg.method)
     out = run_dir(cfg)
     folders = shards.folders(out)
@@ -331,9 +370,17 @@ def judge_run(
         parts.write(out, row, steps)
 
 
+def resolved_method(cfg: DictConfig) -> str:
+    """method=null: a constraint alone is enforced by the controller; the baselines are asked for by name."""
+    if cfg.method is not None:
+        return cfg.method
+    return "none" if cfg.constraint in (None, "", "none") else "control"
+
+
 def default_run_name(cfg: DictConfig) -> str:
     """<model>_<suite>[_<constraint>_<method>][_perturb-<kind>], e.g. `hybrid_libero_spatial_gripper-open_control`."""
-    default = f"{cfg.model}_{cfg.suite}" + ("" if cfg.constraint == "none" else f"_{cfg.constraint}_{cfg.method}")
+    default = f"{cfg.model}_{cfg.suite}"
+    default += "" if cfg.constraint == "none" else f"_{cfg.constraint}_{resolved_method(cfg)}"
     default += "" if cfg.perturb in (None, "none") else f"_perturb-{cfg.perturb}"
     return folder_name(default)
 

@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config
 from vlactl.errors import UsageError, check_device, check_positive
-from vlactl.io import atomic_write_parquet, ensure_writable_dir, keyed_parts
+from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, keyed_parts
 from vlactl.steering.activations import FEATURES, ActivationStore
 from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
 from vlactl.steering.probe_file import save_probe
@@ -26,6 +26,7 @@ BINARY = {
     "gripper": ("gripper < 0.5 (closed)", lambda v: v < 0.5),
     "gripper_action": ("gripper_action > 0 (close)", lambda v: v > 0),
 }
+PROBE_PROVENANCE = "provenance.json"  # a probe run's model, weights, dataset and demo constants
 METRICS_NAME = "metrics.parquet"
 # The settings that change a probe or its metrics (not where or how fast it is fitted); with the activation folder
 # they key the finished layers an interrupted run resumes from.
@@ -140,10 +141,25 @@ def run_train_probes(cfg: DictConfig) -> Path:
     table = table.sort_values(["feature", "layer_index"], key=lambda c: c.map(order) if c.name == "feature" else c)
     table = table.reset_index(drop=True)
     atomic_write_parquet(out / METRICS_NAME, table)
+    atomic_write_json(out / PROBE_PROVENANCE, provenance(store))
     save_config(cfg, out)
     _print_best(table)
     print(f"wrote {out / METRICS_NAME} and {len(table)} probes under {out / 'probes'}", file=sys.stderr)
     return out
+
+
+def provenance(store: ActivationStore) -> dict:
+    """What the probes were fitted on: the model and its weights' fingerprint (a rollout refuses them for other
+    weights), the dataset, and, when the dataset is on disk, the constants constraints are stated in
+    (vlactl.data.motion), so the probe run alone can steer."""
+    from vlactl.data import motion
+
+    info = store.meta.get("info", {})
+    record = {"model": store.meta.get("model"), "weights": info.get("weights"), "dataset": info.get("dataset")}
+    dataset = Path(info["dataset"]) if info.get("dataset") else None
+    if dataset is not None and (dataset / "meta").is_dir():
+        record.update(speed_threshold=motion.speed_median(dataset), metres_per_unit=motion.metres_per_unit(dataset))
+    return record
 
 
 def _frames(labels: pd.DataFrame, query: str) -> np.ndarray:

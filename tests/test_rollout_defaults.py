@@ -1,0 +1,34 @@
+"""What `vlactl rollout --constraint ...` finds by itself: the model, the method, the shipped probes, the constants
+the constraints are stated in."""
+
+import json
+
+import pytest
+
+from vlactl.errors import UsageError
+from vlactl.rollout.runner import demo_constant, probes_run, resolved_method, rollout_config
+
+
+def test_a_constraint_alone_means_the_controller_on_the_embedded_hybrid():
+    cfg = rollout_config(["constraint=height=high"])
+    assert cfg.model == "hybrid" and resolved_method(cfg) == "control"
+    assert resolved_method(rollout_config([])) == "none"
+    assert resolved_method(rollout_config(["constraint=height=high", "method=prompt"])) == "prompt"
+
+
+def test_a_model_without_shipped_probes_says_so():
+    cfg = rollout_config(["model=random", "constraint=gripper=open", "method=control"])
+    with pytest.raises(UsageError, match="needs probes=.*none ship for model 'random'"):
+        probes_run(cfg)
+
+
+def test_constants_come_from_the_probe_run_when_the_demonstrations_are_not_on_disk(tmp_path):
+    run = tmp_path / "probes"
+    run.mkdir()
+    (run / "provenance.json").write_text(json.dumps({"speed_threshold": 0.21, "metres_per_unit": 0.0123}))
+    cfg = rollout_config([f"demos={tmp_path / 'nowhere'}"])
+    assert demo_constant(cfg, "metres_per_unit", run) == 0.0123
+    assert demo_constant(cfg, "speed_threshold", run) == 0.21
+    assert demo_constant(rollout_config(["metres_per_unit=0.02"]), "metres_per_unit", None) == 0.02
+    with pytest.raises(UsageError, match="make it with `vlactl demos`"):
+        demo_constant(cfg, "speed_threshold", tmp_path)
