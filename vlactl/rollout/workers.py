@@ -95,10 +95,6 @@ def run_batch(batch: Batch) -> None:
         init_state, seed = k % env.n_init_states, spec.seed + k
         result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video,
                              hooks=episode_hooks(spec, constraint), start_gripper=spec.start_gripper)
-        if spec.video:
-            from vlactl.rollout.video import write_video
-
-            write_video(out / "videos" / f"task{batch.task:02d}_ep{k:04d}.mp4", result.frames)
         row = {
             "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
@@ -109,6 +105,11 @@ def run_batch(batch: Batch) -> None:
         steps = parts.steps_frame(batch.task, k, result)
         if constraint is not None:
             steps = judge_part(constraint, row, steps, spec.steering.speed_threshold, getattr(agent, "readings", {}))
+        if spec.video:
+            from vlactl.rollout.video import step_captions, write_video
+
+            captions = step_captions(constraint.name, steps) if constraint is not None and len(steps) else None
+            write_video(out / "videos" / f"task{batch.task:02d}_ep{k:04d}.mp4", result.frames, captions)
         parts.write(out, row, steps)
 
 
