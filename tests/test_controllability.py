@@ -74,6 +74,17 @@ def test_a_row_per_layer_group_and_feature_written_into_the_probe_run(probe_runs
     assert len(points) == len(table) * 6 * 4
 
 
+def test_features_measured_apart_add_up_in_the_probe_run(probe_runs, tmp_path):
+    demos, (source, _) = probe_runs
+    probes = tmp_path / "probes"
+    shutil.copytree(source, probes)
+    for feature, targets in (("z", "[-0.1,0.1]"), ("gripper_action", "[-5,5]")):  # each in its own units
+        measure(demos, probes, tmp_path / feature, f"features=[{feature}]", f"targets={targets}", "groups=false")
+    table = pd.read_parquet(probes / "controllability.parquet")
+    assert sorted(table["feature"].unique()) == ["gripper_action", "z"]
+    assert set(table[table["feature"] == "z"]["n_targets"]) == {2}
+
+
 def test_gain_has_the_sign_of_the_push(probe_runs, tmp_path):
     """A z probe at expert.1 along the direction that raises the predicted dz: raising its reading raises dz (gain
     > 0); the same probe negated reads the other way, so the same push lowers it (gain < 0)."""

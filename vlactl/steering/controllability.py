@@ -10,8 +10,8 @@ norm of the predicted (dx, dy, dz). Per row: `gain`, the least-squares slope of 
 share of predictions not yet on the asked side (delta > 0: close) that the push moves across 0 to it.
 
 Writes `controllability.parquet` (one row per layer or group and feature) and `points.parquet` (one per frame, target
-and row) under the run folder, and the table into the probe run folder too, where `vlactl rollout` takes its default
-steered layers from (`most_controllable`).
+and row) under the run folder, and the table into the probe run folder too (replacing only the rows of the features
+measured), where `vlactl rollout` takes its default steered layers from (`most_controllable`).
 """
 
 from __future__ import annotations
@@ -158,10 +158,20 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
     result["metrics_digest"] = digest
     atomic_write_parquet(out / POINTS_NAME, points)
     atomic_write_parquet(out / CONTROLLABILITY_NAME, result)
-    atomic_write_parquet(run / CONTROLLABILITY_NAME, result)
+    atomic_write_parquet(run / CONTROLLABILITY_NAME, _merged(run / CONTROLLABILITY_NAME, result))
     save_config(cfg, out)
     print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows) and {run / CONTROLLABILITY_NAME}", file=sys.stderr)
     return out
+
+
+def _merged(path: Path, result: pd.DataFrame) -> pd.DataFrame:
+    """The probe run's table with this run's features replaced: features measured apart (with targets of their own
+    units) add up there, as long as the probes were not retrained in between."""
+    if not path.is_file():
+        return result
+    earlier = pd.read_parquet(path)
+    keep = (earlier["metrics_digest"] == result["metrics_digest"].iloc[0]) & ~earlier["feature"].isin(result["feature"])
+    return pd.concat([earlier[keep], result], ignore_index=True)
 
 
 def _predicted(chunk: np.ndarray, feature: str, replan_every: int) -> np.ndarray:
