@@ -7,7 +7,7 @@ from typer.testing import CliRunner
 
 from vlactl.cli import app
 from vlactl.errors import UsageError
-from vlactl.plots.rollouts import load_runs
+from vlactl.plots.rollouts import figure_success_vs_satisfaction, load_runs, normalised
 
 
 def fake_run(root, constraint, method, seed):
@@ -18,7 +18,7 @@ def fake_run(root, constraint, method, seed):
              "method": method, "satisfaction": rng.random()} for t in range(3) for k in range(2)]
     pd.DataFrame(rows).to_parquet(out / "episodes.parquet")
     steps = pd.DataFrame([{"task_id": t, "episode": k, "t": i, "in_window": i < 4, "constraint_value": rng.normal(),
-                           "constraint_level": 0.0} for t in range(3) for k in range(2) for i in range(6)])
+                           "constraint_level": 0.0, "gripper": rng.random()} for t in range(3) for k in range(2) for i in range(6)])
     steps.to_parquet(out / "steps.parquet")
     return out
 
@@ -46,3 +46,19 @@ def test_figures_from_every_constrained_run_under_the_root(tmp_path):
 def test_no_constrained_run_is_a_usage_error(tmp_path):
     with pytest.raises(UsageError, match="no constrained rollout runs"):
         load_runs([])
+
+
+def test_gripper_is_drawn_as_closure_and_every_condition_has_its_panel(tmp_path):
+    for i, (constraint, method) in enumerate([("gripper=open", "none"), ("gripper=closed", "control"),
+                                              ("gripper=closed", "filter"), ("height=high", "control")]):
+        fake_run(tmp_path, constraint, method, i)
+    episodes, steps = load_runs(sorted(p for p in tmp_path.iterdir()))
+    gripper = steps[steps["feature"] == "gripper"]
+    assert np.allclose(normalised(gripper, "gripper"), 1 - gripper["gripper"])
+    height = steps[steps["feature"] == "height"]
+    assert np.allclose(normalised(height, "height"), height["constraint_value"] - height["constraint_level"])
+    fig = figure_success_vs_satisfaction(episodes)
+    titles = [ax.get_title() for ax in fig.axes if ax.axison]
+    assert titles == ["gripper=closed", "gripper=open", "height=high"]
+    closed = next(ax for ax in fig.axes if ax.get_title() == "gripper=closed")
+    assert [t.get_text() for t in closed.get_legend().get_texts()] == ["control", "filter"]

@@ -1,10 +1,12 @@
 """`vlactl plot rollouts`: the paper's Figs. 4-8 from constrained rollout runs.
 
-- `violins_<feature>`: per condition (constraint value) and method, the distribution over window steps of the
-  constrained quantity relative to its reference level (gripper action vs 0, z vs the start height, speed vs the
-  threshold): the constraint asks for the side of 0 the condition names (Figs. 4, 5, 7).
-- `success_vs_satisfaction`: per condition and method, mean constraint satisfaction against success rate over tasks,
-  with a one-standard-deviation ellipse of the per-task values (Figs. 6, 8);
+- `violins_<feature>`: one violin pair per method, the two conditions side by side (open | closed, low | high), of
+  the constrained quantity over window steps, normalised as the paper does: the gripper's closure (0 open .. 1
+  closed, from the measured aperture), the height and the speed minus their reference (start height, threshold);
+  means and medians marked (Figs. 4, 5, 7).
+- `success_vs_satisfaction`: one panel per constraint (rows: feature; columns: condition), mean satisfaction against
+  success rate per method with a one-standard-deviation ellipse over tasks; hollow markers of decreasing size, so a
+  method on top of another stays visible (Figs. 6, 8);
 - `summary.md`: success (with its 95% Wilson interval) and satisfaction per constraint and method, the unconstrained
   run included.
 """
@@ -25,7 +27,10 @@ from vlactl.io import atomic_write_text
 from vlactl.plots.files import check_formats, plt, save_figure
 from vlactl.rollout.summary import success_interval
 
-METHOD_ORDER = ("none", "prompt", "control", "alpha")
+METHOD_ORDER = ("none", "prompt", "control", "alpha", "meandiff", "filter")
+MARKERS = "osD^vP*X"
+YLABEL = {"gripper": "gripper closure (0 open, 1 closed)", "height": "z − start height (m)",
+          "speed": "speed − threshold (m/s)"}
 
 
 def load_runs(folders: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -53,44 +58,75 @@ def _methods(table: pd.DataFrame) -> list[str]:
     return sorted(table["method"].unique(), key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else 99)
 
 
+def normalised(steps: pd.DataFrame, feature: str) -> np.ndarray:
+    """The quantity Figs. 4, 5, 7 draw: the gripper's closure from its aperture, else value minus reference."""
+    if feature == "gripper":
+        return 1.0 - steps["gripper"].to_numpy(dtype=float)
+    return (steps["constraint_value"] - steps["constraint_level"]).to_numpy(dtype=float)
+
+
 def figure_violins(steps: pd.DataFrame, feature: str):
     rows = steps[steps["feature"] == feature]
     conditions, methods = sorted(rows["condition"].unique()), _methods(rows)
-    fig, axes = plt.subplots(1, len(conditions), figsize=(3.2 * len(conditions), 3.4), squeeze=False,
-                             constrained_layout=True)
-    for ax, condition in zip(axes[0], conditions):
-        data = [(rows[(rows["condition"] == condition) & (rows["method"] == m)]) for m in methods]
-        values = [(d["constraint_value"] - d["constraint_level"]).to_numpy() for d in data]
-        shown = [i for i, v in enumerate(values) if len(v)]
-        ax.violinplot([values[i] for i in shown], positions=shown, showmedians=True)
+    fig, ax = plt.subplots(figsize=(1.3 + 1.2 * len(methods), 3.4), constrained_layout=True)
+    width = 0.8 / len(conditions)
+    for c, condition in enumerate(conditions):
+        offset = (c - (len(conditions) - 1) / 2) * width
+        values = {i: normalised(rows[(rows["condition"] == condition) & (rows["method"] == m)], feature)
+                  for i, m in enumerate(methods)}
+        shown = [i for i, v in values.items() if len(v)]
+        if not shown:
+            continue
+        parts = ax.violinplot([values[i] for i in shown], positions=[i + offset for i in shown], widths=width * 0.9,
+                              showmeans=True, showmedians=True)
+        for body in parts["bodies"]:
+            body.set_facecolor(f"C{c}")
+            body.set_alpha(0.45)
+        parts["cmedians"].set_color("k")
+        parts["cmeans"].set_color(f"C{c}")
+        parts["cmeans"].set_linestyle(":")
+        ax.scatter([], [], color=f"C{c}", marker="s", label=f"{feature}={condition}")
+    if feature != "gripper":
         ax.axhline(0, color="0.5", lw=0.8, ls="--")
-        ax.set_xticks(range(len(methods)), methods)
-        ax.set_title(f"{feature}={condition}")
-    axes[0][0].set_ylabel(f"{feature} in the window − reference")
+    ax.set_xticks(range(len(methods)), methods)
+    ax.set_ylabel(YLABEL.get(feature, feature))
+    ax.set_title(f"{feature} in the window (median —, mean ···)", fontsize=9)
+    ax.legend(fontsize=7)
     return fig
 
 
 def figure_success_vs_satisfaction(episodes: pd.DataFrame):
-    fig, ax = plt.subplots(figsize=(5, 4), constrained_layout=True)
-    groups = episodes.groupby(["feature", "condition", "method"])
-    colours = {m: f"C{i}" for i, m in enumerate(_methods(episodes))}
-    markers = dict(zip(sorted(episodes["constraint"].unique()), "osD^v<>p*h"))
-    for (feature, condition, method), group in groups:
-        per_task = group.groupby("task_id").agg(sat=("satisfaction", "mean"), ok=("success", "mean"))
-        x, y = per_task["sat"].mean(), per_task["ok"].mean()
-        colour = colours[method]
-        ax.scatter(x, y, color=colour, marker=markers[f"{feature}={condition}"], zorder=3)
-        ax.add_patch(Ellipse((x, y), 2 * np.nan_to_num(per_task["sat"].std()), 2 * np.nan_to_num(per_task["ok"].std()),
-                             color=colour, alpha=0.15, lw=0))
-    for method, colour in colours.items():
-        ax.scatter([], [], color=colour, label=method)
-    for name, marker in markers.items():
-        ax.scatter([], [], color="0.3", marker=marker, label=name)
-    ax.set_xlabel("constraint satisfaction")
-    ax.set_ylabel("task success rate")
-    ax.set_xlim(-0.05, 1.05)
-    ax.set_ylim(-0.05, 1.05)
-    ax.legend(fontsize=7, loc="lower left")
+    features = sorted(episodes["feature"].unique())
+    columns = max(episodes.groupby("feature")["condition"].nunique())
+    fig, axes = plt.subplots(len(features), columns, figsize=(3.4 * columns, 3.0 * len(features)), squeeze=False,
+                             constrained_layout=True)
+    methods = _methods(episodes)
+    style = {m: (f"C{i}", MARKERS[i % len(MARKERS)], 110 - 12 * i) for i, m in enumerate(methods)}
+    for r, feature in enumerate(features):
+        conditions = sorted(episodes.loc[episodes["feature"] == feature, "condition"].unique())
+        for c in range(columns):
+            ax = axes[r][c]
+            if c >= len(conditions):
+                ax.axis("off")
+                continue
+            rows = episodes[(episodes["feature"] == feature) & (episodes["condition"] == conditions[c])]
+            for method in methods:
+                group = rows[rows["method"] == method]
+                if group.empty:
+                    continue
+                per_task = group.groupby("task_id").agg(sat=("satisfaction", "mean"), ok=("success", "mean"))
+                x, y = per_task["sat"].mean(), per_task["ok"].mean()
+                colour, marker, size = style[method]
+                ax.add_patch(Ellipse((x, y), 2 * np.nan_to_num(per_task["sat"].std()),
+                                     2 * np.nan_to_num(per_task["ok"].std()), color=colour, alpha=0.12, lw=0))
+                ax.scatter(x, y, s=size, marker=marker, facecolors="none", edgecolors=colour, linewidths=1.6,
+                           zorder=3, label=method)
+            ax.set_title(f"{feature}={conditions[c]}", fontsize=9)
+            ax.set_xlim(-0.05, 1.05)
+            ax.set_ylim(-0.05, 1.05)
+            ax.set_xlabel("constraint satisfaction")
+            ax.set_ylabel("task success rate")
+            ax.legend(fontsize=6, loc="lower left")
     return fig
 
 
