@@ -103,6 +103,16 @@ def rollout(
         merge_run(cfg) if merge else run_rollout(cfg)
 
 
+@app.command()
+def serve(overrides: Optional[List[str]] = OVERRIDES):
+    """Load a model once and answer rollout workers over a websocket (`vlactl rollout policy=ws://HOST:PORT`),
+    batching requests that arrive together; steering runs in the server, per connection (docs/scale-out.md)."""
+    from vlactl.config import load_policy_stage_config
+    from vlactl.serve.server import run_serve
+
+    run_serve(load_policy_stage_config("serve", overrides))
+
+
 @app.command("train-policy")
 def train_policy(
     overrides: Optional[List[str]] = OVERRIDES,

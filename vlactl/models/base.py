@@ -123,6 +123,19 @@ class VLA(ABC):
     def set_sampling_state(self, state) -> None:
         torch.random.set_rng_state(state)
 
+    def predict_rows(self, obs: PolicyInput, states: list) -> tuple[torch.Tensor, list]:
+        """Rows of independent episodes (a policy server's batch), row i drawing from sampling state `states[i]`:
+        the chunks [B, chunk_size, 7] each row gets predicted alone, and each row's state after. By default one
+        forward per row; a model that draws its noise per row, or draws none, batches them."""
+        chunks, after = [], []
+        for i, state in enumerate(states):
+            self.set_sampling_state(state)
+            row = PolicyInput({k: v[i : i + 1] for k, v in obs.images.items()}, obs.state[i : i + 1],
+                              obs.instruction[i : i + 1])
+            chunks.append(self.predict_action_chunk(row))
+            after.append(self.sampling_state())
+        return torch.cat(chunks), after
+
     def eval(self) -> "VLA":
         return self
 

@@ -242,7 +242,12 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         _check_same_run(cfg, folder)
 
     # Load once here, before any worker starts: a bad model name fails in one line, and we learn its settings.
-    agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
+    if cfg.policy:  # the model runs in a `vlactl serve` process; the workers are its clients
+        from vlactl.serve.client import served_agent
+
+        agent = served_agent(cfg)
+    else:
+        agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
     from vlactl.render_presets import warn_if_rendered_otherwise
     warn_if_rendered_otherwise(str(cfg.model), getattr(agent, "vla", None), env)
     for probe in plan.probes + plan.holds:  # here, not in a worker after its start-up; rollouts steer at "prefix"
@@ -264,7 +269,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         out=str(where), suite=cfg.suite, model=str(cfg.model), seed=cfg.seed, max_steps=cfg.max_steps,
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
         env=env, load_policy=load_policy, constraint=str(cfg.constraint),
-        window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation,
+        window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation, policy=cfg.policy,
     )
     if cfg.judge_from and perturbation is not None:
         raise UsageError(f"judge_from=... judges unperturbed episodes; drop it with perturb={cfg.perturb}")

@@ -37,6 +37,7 @@ class RunSpec:
     steering: Steering = Steering("none")
     start_gripper: str = "open"  # resolved: open or closed
     perturbation: Perturbation | None = None
+    policy: str | None = None  # ws://HOST:PORT: the model runs in a `vlactl serve` process (vlactl.serve)
 
 
 @dataclass(frozen=True)
@@ -64,9 +65,18 @@ def init_worker(spec: RunSpec) -> None:
 def _agent():
     global _AGENT
     if _AGENT is None:  # loaded on first use, not in the initializer: a failing initializer respawns forever
-        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy, _SPEC.snap_gripper)
         constraint = parse_constraint(_SPEC.constraint, _SPEC.window)
-        if constraint is not None and _SPEC.steering.method not in ("none", "filter"):
+        steered = constraint is not None and _SPEC.steering.method not in ("none", "filter")
+        if _SPEC.policy:
+            from vlactl.serve.client import RemoteAgent
+            from vlactl.serve.protocol import encode_steer
+
+            steer = encode_steer(_SPEC.constraint, _SPEC.window, _SPEC.steering, _SPEC.replan_every,
+                                 _SPEC.snap_gripper) if steered else None
+            _AGENT = RemoteAgent(_SPEC.policy, _SPEC.replan_every, _SPEC.snap_gripper, steer)
+            return _AGENT
+        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy, _SPEC.snap_gripper)
+        if steered:
             _AGENT = ConstrainedAgent(
                 _AGENT.vla, constraint, _SPEC.steering, _SPEC.replan_every, _SPEC.snap_gripper
             )

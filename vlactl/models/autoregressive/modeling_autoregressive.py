@@ -80,6 +80,10 @@ class AutoregressivePolicy(EmbeddedPolicy):
         chunk = torch.stack(ids, 1).view(b, self.config.chunk_size, self.config.action_dim)
         return self.processor.bin_centers(chunk)
 
+    def predict_rows(self, obs, states: list):
+        """Decoding draws no noise: the rows are one forward, their states unchanged."""
+        return self.predict_action_chunk(obs), list(states)
+
     def _pick(self, logits: torch.Tensor) -> torch.Tensor:
         """[B, bins] -> the bin each row decodes to."""
         if self.config.decode == "median":

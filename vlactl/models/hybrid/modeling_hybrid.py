@@ -48,6 +48,7 @@ class HybridPolicy(EmbeddedPolicy):
         self.action_time_mlp = nn.Sequential(nn.Linear(2 * width, width), nn.SiLU(), nn.Linear(width, width))
         self.action_out = nn.Linear(width, config.action_dim)
         self._noise = torch.Generator().manual_seed(config.noise_seed)
+        self._row_noise: list[torch.Generator] | None = None  # predict_rows: one generator per batch row
 
     def _stacks(self):
         return {"backbone": self.backbone.layers, "expert": self.expert.layers}
@@ -60,6 +61,17 @@ class HybridPolicy(EmbeddedPolicy):
 
     def set_sampling_state(self, state) -> None:
         self._noise.set_state(state)
+
+    def predict_rows(self, obs, states: list):
+        """One forward; row i's noise drawn from its own generator, as `_sample` draws it for a batch of one."""
+        self._row_noise = [torch.Generator() for _ in states]
+        for generator, state in zip(self._row_noise, states):
+            generator.set_state(state)
+        try:
+            chunk = self.predict_action_chunk(obs)
+            return chunk, [g.get_state() for g in self._row_noise]
+        finally:
+            self._row_noise = None
 
     # --- the two halves -------------------------------------------------------------------------------------
     def _run_prefix(self, inputs) -> tuple[DynamicCache, int]:
@@ -108,7 +120,11 @@ class HybridPolicy(EmbeddedPolicy):
     def _sample(self, inputs) -> torch.Tensor:
         cache, n_prefix = self._run_prefix(inputs)
         b = inputs["state"].shape[0]
-        x = torch.randn(b, self.config.chunk_size, self.config.action_dim, generator=self._noise)
+        shape = (self.config.chunk_size, self.config.action_dim)
+        if self._row_noise is None:
+            x = torch.randn(b, *shape, generator=self._noise)
+        else:
+            x = torch.cat([torch.randn(1, *shape, generator=g) for g in self._row_noise])
         x = x * self.config.noise_scale
         steps = self.config.flow_steps
         for k in range(steps):

@@ -1,0 +1,143 @@
+"""`vlactl serve` and `rollout policy=ws://...`, on 127.0.0.1 only: a served model acts as the same model in process
+(per connection noise streams, batched or not), a rollout through the server writes the in-process run's episodes,
+and a server that is down, a bad message or probes of another model end in one line, never a traceback.
+
+With the registry's tiny random hybrid; the servers run in a thread and stop themselves."""
+
+import asyncio
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from vlactl.models.registry import tiny_policy
+from vlactl.rollout.agents import VLAAgent
+from vlactl.serve.client import Connection, RemoteAgent, ServerError
+from vlactl.serve.server import PolicyServer
+from vlactl.serve.wire import packb, unpackb
+
+
+class Served:
+    """A PolicyServer on a free loopback port in a background thread, for the `with` block."""
+
+    def __init__(self, vla, model="random", **options):
+        self.server = PolicyServer(vla, model, **options)
+
+    def __enter__(self):
+        ready, self.loop = threading.Event(), asyncio.new_event_loop()
+
+        def listening(port):
+            self.url = f"ws://127.0.0.1:{port}"
+            ready.set()
+
+        async def main():
+            self.stop = asyncio.Event()
+            await self.server.serve("127.0.0.1", 0, listening, self.stop)
+
+        self.thread = threading.Thread(target=self.loop.run_until_complete, args=(main(),), daemon=True)
+        self.thread.start()
+        assert ready.wait(30), "the server did not start"
+        return self
+
+    def __exit__(self, *exc):
+        self.loop.call_soon_threadsafe(self.stop.set)
+        self.thread.join(30)
+
+
+def _episode(seed: int, steps: int = 5):
+    """A fake episode: its env (the instruction) and observations, as the env worker would see them."""
+    rng = np.random.default_rng(seed)
+    env = SimpleNamespace(instruction="pick up the black bowl on the stove and place it on the plate")
+    obs = [SimpleNamespace(images={c: rng.integers(0, 255, (128, 128, 3), dtype=np.uint8) for c in ("image", "wrist_image")},
+                           libero_state=rng.normal(size=8).astype(np.float32), state=rng.normal(size=7))
+           for _ in range(steps)]
+    return env, obs
+
+
+def _actions(agent, env, obs):
+    agent.reset(env, obs[0])
+    return np.stack([agent.act(o) for o in obs])
+
+
+@pytest.fixture(scope="module")
+def served():
+    with Served(tiny_policy("hybrid"), max_batch_size=4, max_wait_s=0.05) as s:
+        yield s
+
+
+def test_served_actions_equal_in_process(served):
+    """Two episodes in a row on one connection, and again: each starts its noise stream afresh, as in process."""
+    local = VLAAgent(tiny_policy("hybrid"))
+    remote = RemoteAgent(served.url)
+    assert (remote.chunk_size, remote.replan_every, remote.needs_images) == (local.chunk_size, local.replan_every, True)
+    for seed in (0, 1, 0):
+        env, obs = _episode(seed)
+        np.testing.assert_array_equal(_actions(remote, env, obs), _actions(local, env, obs))
+
+
+def test_batched_rows_equal_alone(served):
+    """Three clients at once share forwards (batch sizes > 1), and each still gets its in-process actions: its own
+    noise, to float rounding (a batched matrix product may round otherwise than one of a single row)."""
+    episodes = [_episode(seed, steps=6) for seed in (3, 4, 5)]
+    expected = [_actions(VLAAgent(tiny_policy("hybrid")), *e) for e in episodes]
+    agents = [RemoteAgent(served.url) for _ in episodes]
+    got, before = [None] * 3, sum(n for size, n in served.server.batch_sizes.items() if size > 1)
+    threads = [threading.Thread(target=lambda i=i: got.__setitem__(i, _actions(agents[i], *episodes[i])))
+               for i in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    for g, e in zip(got, expected):
+        np.testing.assert_allclose(g, e, rtol=0, atol=1e-5)
+    assert sum(n for size, n in served.server.batch_sizes.items() if size > 1) > before
+
+
+def test_bad_message_is_one_line_and_the_server_lives_on(served):
+    from websockets.sync.client import connect
+
+    with connect(served.url) as ws:
+        assert unpackb(ws.recv(timeout=10))["name"] == "hybrid"  # the metadata, first
+        ws.send(packb({"obs": {"state": np.zeros(3, np.float32), "instruction": "x"}}))
+        reply = ws.recv(timeout=10)
+    assert isinstance(reply, str) and reply.startswith("bad request: obs.state must be 8 floats") and "\n" not in reply
+    connection = Connection(served.url)
+    with pytest.raises(ServerError, match="bad request: a request needs 'obs'"):
+        connection.request({"hello": 1})
+    env, obs = _episode(0, steps=2)
+    assert _actions(RemoteAgent(served.url), env, obs).shape == (2, 7)  # other clients are served as before
+
+
+def test_server_down_is_one_line():
+    with pytest.raises(ServerError, match=r"^no policy server at ws://127.0.0.1:9 .*vlactl serve") as err:
+        Connection("ws://127.0.0.1:9", connect_s=0.5)
+    assert "\n" not in str(err.value)
+
+
+def test_dropped_connection_is_one_line():
+    with Served(tiny_policy("hybrid")) as s:
+        agent = RemoteAgent(s.url)
+    env, obs = _episode(0, steps=1)
+    agent.reset(env, obs[0])
+    with pytest.raises(ServerError, match="re-run the same command to resume"):
+        agent.act(obs[0])
+
+
+def test_rollout_through_the_server_equals_in_process(tmp_path):
+    """`rollout policy=ws://...`: the same episodes, row for row and step for step, as the run with the model in
+    the worker; a server serving another model than `model=` is refused in one line."""
+    from vlactl.errors import UsageError
+    from vlactl.rollout.runner import rollout_config, run_rollout
+
+    base = ["model=random", "tasks=[0]", "episodes_per_task=2", "max_steps=4", "workers=1", f"output_root={tmp_path}"]
+    run_rollout(rollout_config([*base, "run_name=local"]))
+    with Served(tiny_policy("hybrid")) as s:
+        run_rollout(rollout_config([*base, "run_name=served", f"policy={s.url}"]))
+        with pytest.raises(UsageError, match="serves 'random', not model='hybrid'; give model=random"):
+            run_rollout(rollout_config([*base[1:], "model=hybrid", "run_name=other", f"policy={s.url}"]))
+    for table in ("episodes", "steps"):
+        local, served = (pd.read_parquet(tmp_path / run / f"{table}.parquet") for run in ("local", "served"))
+        pd.testing.assert_frame_equal(local.drop(columns="wall_s", errors="ignore"),
+                                      served.drop(columns="wall_s", errors="ignore"))

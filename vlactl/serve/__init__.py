@@ -1,0 +1,1 @@
+"""A policy server: one loaded model answering many rollout workers over a websocket (docs/scale-out.md)."""
