@@ -77,7 +77,8 @@ READ_GAP = 8  # frames further apart than this are read separately (vlactl colle
 def data_files(root: Path) -> list[Path]:
     files = sorted((root / "data").glob("chunk-*/file-*.parquet"))
     if not (root / "meta" / "info.json").is_file() or not files:
-        raise UsageError(f"no LeRobot v3 dataset at {str(root)!r} (need meta/info.json and data/*/*.parquet)")
+        raise UsageError(f"no LeRobot v3 dataset at {str(root)!r} (need meta/info.json and data/*/*.parquet); "
+                         "make one with `vlactl demos` (the libero_spatial set, 10 tasks x 50: about 50 min on 2 cores)")
     return files
 
 

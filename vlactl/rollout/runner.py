@@ -33,6 +33,7 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
                  "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
                  "perturb_steps", "perturb_size", "box", "passes")
+SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
@@ -93,18 +94,24 @@ def steering(cfg: DictConfig, constraint) -> Steering:
 
 
 def probes_run(cfg: DictConfig) -> Path:
-    """`probes=`, or by default the probes shipped for the model: `data/probes/<model>/steer` (strongly regularised,
-    for control on the actions, alpha and meandiff) or `.../observe` (the observability probes, for box=state)."""
+    """`probes=`, or by default the previous stage's default output (`vlactl train-probes` after `vlactl collect`:
+    outputs/probes/<model>_libero_spatial_prefix) if there is one, else the probes shipped for the model:
+    `data/probes/<model>/steer` (strongly regularised, for control on the actions, alpha and meandiff) or
+    `.../observe` (the observability probes, for box=state)."""
+    import sys
+
     from vlactl.steering.train_probes import METRICS_NAME
 
     if cfg.probes is not None:
         return stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
+    name = Path(str(cfg.model)).name
     family = "observe" if cfg.method == "control" and cfg.box == "state" else "steer"
-    shipped = REPO_ROOT / "data" / "probes" / Path(str(cfg.model)).name / family
-    if not (shipped / METRICS_NAME).is_file():
-        raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>; none ship "
-                         f"for model {cfg.model!r} (shipped: {', '.join(shipped_probe_models()) or 'none'})")
-    return shipped
+    for run in (REPO_ROOT / "outputs" / "probes" / f"{name}_libero_spatial_prefix", SHIPPED_PROBES / name / family):
+        if (run / METRICS_NAME).is_file():
+            print(f"probes: {run}", file=sys.stderr)
+            return run
+    raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>; none ship "
+                     f"for model {cfg.model!r} (shipped: {', '.join(shipped_probe_models()) or 'none'})")
 
 
 def _check_probe_weights(run: Path, model: str) -> None:
@@ -123,7 +130,7 @@ def _check_probe_weights(run: Path, model: str) -> None:
 
 
 def shipped_probe_models() -> list[str]:
-    return sorted(p.name for p in (REPO_ROOT / "data" / "probes").glob("*") if p.is_dir())
+    return sorted(p.name for p in SHIPPED_PROBES.glob("*") if p.is_dir())
 
 
 def demo_constant(cfg: DictConfig, key: str, run: Path | None) -> float:
