@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 import pytest
+from test_constrained_rollout import probes  # noqa: F401 - the fixture: probes of the random model
 
 from vlactl.models.registry import tiny_policy
 from vlactl.rollout.agents import VLAAgent
@@ -141,3 +142,56 @@ def test_rollout_through_the_server_equals_in_process(tmp_path):
         local, served = (pd.read_parquet(tmp_path / run / f"{table}.parquet") for run in ("local", "served"))
         pd.testing.assert_frame_equal(local.drop(columns="wall_s", errors="ignore"),
                                       served.drop(columns="wall_s", errors="ignore"))
+
+
+@pytest.mark.parametrize("box", ["state", "action"])
+def test_steered_rollout_through_the_server_equals_in_process(probes, tmp_path, box):
+    """Steering runs in the server, per connection: the same steps and the same probe readings come back."""
+    from vlactl.rollout.runner import rollout_config, run_rollout
+
+    base = ["model=random", "tasks=[0]", "episodes_per_task=1", "max_steps=6", "workers=1", f"output_root={tmp_path}",
+            "constraint=gripper=open", "window=4", "method=control", f"probes={probes}", f"box={box}"]
+    run_rollout(rollout_config([*base, "run_name=local"]))
+    with Served(tiny_policy("hybrid")) as s:
+        run_rollout(rollout_config([*base, "run_name=served", f"policy={s.url}"]))
+    local, served = (pd.read_parquet(tmp_path / run / "steps.parquet") for run in ("local", "served"))
+    assert local["reading_after"].notna().any()
+    pd.testing.assert_frame_equal(local, served)
+
+
+def test_probes_of_another_model_are_refused_by_the_server(probes):
+    from vlactl.rollout.constrained import Steering
+    from vlactl.serve.protocol import encode_steer
+    from vlactl.steering.probe_file import load_probe
+
+    probe = next(p for p in map(load_probe, sorted((probes / "probes").glob("*.safetensors")))
+                 if p.layer == "backbone.0")
+    steer = encode_steer("gripper=open", 4, Steering("control", (probe,)), None, True)
+    with Served(tiny_policy("autoregressive")) as s:
+        with pytest.raises(ServerError, match=r"refused: probe .* trained on model 'hybrid'.*this is 'autoregressive'"):
+            RemoteAgent(s.url, steer=steer)
+
+
+def test_serve_command_answers_and_a_rollout_without_it_fails_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    from test_cli import run
+
+    server = subprocess.Popen([sys.executable, "-m", "vlactl.cli", "serve", "model=random", "port=0"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        line = server.stdout.readline()  # "serving random (hybrid, chunk 4) on ws://127.0.0.1:PORT; ..."
+        assert line.startswith("serving random (hybrid, chunk 4) on ws://127.0.0.1:"), line
+        url = line.split(" on ")[1].split(";")[0]
+        env, obs = _episode(0, steps=3)
+        np.testing.assert_array_equal(_actions(RemoteAgent(url), env, obs),
+                                      _actions(VLAAgent(tiny_policy("hybrid")), env, obs))
+    finally:
+        server.terminate()
+        server.wait(30)
+    result = run("rollout", "model=random", "tasks=[0]", "episodes_per_task=1", f"output_root={tmp_path}",
+                 f"policy={url}")
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith(f"error: no policy server at {url}") and "\n" not in result.stderr.strip()
+    assert not any(tmp_path.iterdir())  # nothing written
