@@ -107,8 +107,27 @@ def test_bad_message_is_one_line_and_the_server_lives_on(served):
     connection = Connection(served.url)
     with pytest.raises(ServerError, match="bad request: a request needs 'obs'"):
         connection.request({"hello": 1})
+    with connect(served.url) as ws:
+        ws.recv(timeout=10)
+        ws.send(b"\xc1 not msgpack")
+        assert ws.recv(timeout=10).startswith("bad request: ")
     env, obs = _episode(0, steps=2)
     assert _actions(RemoteAgent(served.url), env, obs).shape == (2, 7)  # other clients are served as before
+
+
+def test_an_openpi_style_request_is_answered(served):
+    """openpi's LIBERO observation keys; its client sends no episode start, so the connection's stream goes on."""
+    from websockets.sync.client import connect
+
+    rng = np.random.default_rng(0)
+    request = {"observation/image": rng.integers(0, 255, (128, 128, 3), dtype=np.uint8),
+               "observation/wrist_image": rng.integers(0, 255, (128, 128, 3), dtype=np.uint8),
+               "observation/state": np.zeros(8), "prompt": "pick up the black bowl"}
+    with connect(served.url, compression=None, max_size=None) as ws:
+        metadata = unpackb(ws.recv(timeout=10))
+        ws.send(packb(request))
+        reply = unpackb(ws.recv(timeout=30))
+    assert reply["actions"].shape == (metadata["chunk_size"], 7) and reply["actions"].dtype == np.float32
 
 
 def test_server_down_is_one_line():

@@ -55,37 +55,46 @@ class PolicyServer:
 
     # --- connections --------------------------------------------------------------------------------------
     async def handle(self, ws) -> None:
+        from websockets.exceptions import ConnectionClosed
+
         self._sessions += 1
         session = Session()
         try:
-            await ws.send(packb(self.metadata))
-            async for message in ws:
-                try:
-                    request = unpackb(message) if isinstance(message, bytes) else None
-                    if not isinstance(request, dict):
-                        raise protocol.BadRequest("a request must be a msgpack map in a binary frame")
-                    if "steer" in request:
-                        await self._run(self._steer, session, request["steer"])
-                        await ws.send(packb({"steered": True}))
-                        continue
-                    obs = protocol.observation(request, self.vla.cameras, self.vla.needs_images)
-                    if session.agent is not None and obs["robot_state"] is None:
-                        raise protocol.BadRequest("a steered request needs obs.robot_state (the SPEC.md §2 state)")
-                except (protocol.BadRequest, UsageError, ValueError, TypeError) as exc:
-                    await ws.send(f"{'refused' if isinstance(exc, UsageError) else 'bad request'}: {exc}")
-                    await ws.close()
-                    return
-                pending = Pending(session, obs, bool(request.get("reset", False)),
-                                  asyncio.get_running_loop().create_future())
-                await self._queue.put(pending)
-                reply = await pending.reply
-                if isinstance(reply, str):
-                    await ws.send(reply)
-                    await ws.close()
-                    return
-                await ws.send(packb(reply))
+            await self._converse(ws, session)
+        except ConnectionClosed:  # the client went away (its rollout ended or was killed): nothing to answer
+            pass
         finally:
             self._sessions -= 1
+
+    async def _converse(self, ws, session: Session) -> None:
+        """Metadata first, then one reply per request; a bad request ends the connection in one line."""
+        await ws.send(packb(self.metadata))
+        async for message in ws:
+            try:
+                request = unpackb(message) if isinstance(message, bytes) else None
+                if not isinstance(request, dict):
+                    raise protocol.BadRequest("a request must be a msgpack map in a binary frame")
+                if "steer" in request:
+                    await self._run(self._steer, session, request["steer"])
+                    await ws.send(packb({"steered": True}))
+                    continue
+                obs = protocol.observation(request, self.vla.cameras, self.vla.needs_images)
+                if session.agent is not None and obs["robot_state"] is None:
+                    raise protocol.BadRequest("a steered request needs obs.robot_state (the SPEC.md §2 state)")
+            except Exception as exc:  # noqa: BLE001 - whatever a client sends, it gets one line, the server lives on
+                why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                await ws.send(f"{'refused' if isinstance(exc, UsageError) else 'bad request'}: {why}")
+                await ws.close()
+                return
+            pending = Pending(session, obs, bool(request.get("reset", False)),
+                              asyncio.get_running_loop().create_future())
+            await self._queue.put(pending)
+            reply = await pending.reply
+            if isinstance(reply, str):
+                await ws.send(reply)
+                await ws.close()
+                return
+            await ws.send(packb(reply))
 
     def _steer(self, session: Session, message) -> None:
         from vlactl.rollout.constrained import ConstrainedAgent
@@ -205,5 +214,8 @@ def run_serve(cfg) -> None:
 
     try:
         asyncio.run(server.serve(str(cfg.host), int(cfg.port), ready))
+    except KeyboardInterrupt:
+        sizes = ", ".join(f"{size}: {n}" for size, n in sorted(server.batch_sizes.items())) or "none"
+        print(f"stopped; forwards by batch size: {sizes}")
     except OSError as exc:  # the port is taken, or the host is not this machine's
         raise UsageError(f"cannot listen on {cfg.host}:{cfg.port} ({exc.strerror or exc})") from None
