@@ -5,6 +5,7 @@ demos -> train-policy -> collect -> train-probes -> sweep / controllability / ro
 
 from __future__ import annotations
 
+import functools
 import sys
 from typing import List, Optional
 
@@ -21,8 +22,9 @@ app = typer.Typer(
 OVERRIDES = typer.Argument(None, help="Hydra-style config overrides, e.g. suite=libero_object episodes_per_task=5")
 
 
-MULTIRUN = typer.Option(False, "-m", "--multirun", help="Hydra-style multirun: key=a,b runs once per value "
-                        "(cartesian product over every swept key), each run in its own folder.")
+MULTIRUN = typer.Option(False, "-m", "--multirun", help="Hydra multirun: key=a,b runs once per value (cartesian "
+                        "product over every swept key), each run in its own folder; hydra/launcher=joblib, "
+                        "submitit_local, submitit_slurm or ray runs them in parallel (docs/scale-out.md).")
 
 
 def _overrides(extra: list[str] | None, **options) -> list[str]:
@@ -31,11 +33,17 @@ def _overrides(extra: list[str] | None, **options) -> list[str]:
     return out + list(extra or [])
 
 
-def _runs(overrides: list[str], multirun: bool, named_by: tuple[str, ...]) -> list[tuple[list[str], str]]:
-    """(overrides, tag) per run: one run as given, or with -m one per combination of the swept values."""
-    from vlactl.multirun import expand
+def _launch(stage: str, overrides: list[str], multirun: bool, run, load, named_by: tuple[str, ...]) -> None:
+    """`run(overrides, tag)` once as given, or with -m once per combination of the swept values, through Hydra's
+    launcher (vlactl/multirun.py). `run` is a module-level function, so that launchers can pickle it."""
+    from vlactl.multirun import is_hydra, launch
 
-    return expand(overrides, named_by) if multirun else [(overrides, "")]
+    if multirun:
+        launch(stage, overrides, run, load, named_by)
+    elif hydra := [item for item in overrides if is_hydra(item)]:
+        raise UsageError(f"{hydra[0]} needs -m: Hydra's launchers run multiruns")
+    else:
+        run(overrides, "")
 
 
 @app.command()
@@ -88,7 +96,7 @@ def rollout(
     """Closed-loop evaluation on LIBERO: success per task, per-step states and actions, optional videos (resumable).
 
     `shard=i num_shards=n` runs one slice of the episodes; `vlactl rollout merge <same overrides>` joins them."""
-    from vlactl.rollout.runner import default_run_name, merge_run, rollout_config, run_rollout
+    from vlactl.rollout.runner import rollout_config
 
     merge = bool(overrides) and overrides[0] == "merge"  # a word, not an override: Typer has one argument list here
     overrides = overrides[1:] if merge else overrides
@@ -96,11 +104,18 @@ def rollout(
         overrides, model=model, suite=suite, episodes_per_task=episodes_per_task, workers=workers, video=video,
         run_name=run_name, constraint=constraint, method=method, probes=probes,
     )
-    for items, tag in _runs(given, multirun, named_by=("model", "suite", "constraint", "method")):
-        cfg = rollout_config(items)
-        if tag and cfg.run_name is None:
-            cfg.run_name = f"{default_run_name(cfg)}_{tag}"
-        merge_run(cfg) if merge else run_rollout(cfg)
+    # `-m shard=0,1,2,3 num_shards=4`: the shards of one run (each writes its own shard folder), not four runs
+    _launch("rollout", given, multirun, functools.partial(_rollout_run, merge=merge), rollout_config,
+            named_by=("model", "suite", "constraint", "method", "shard"))
+
+
+def _rollout_run(items: list[str], tag: str, merge: bool) -> None:
+    from vlactl.rollout.runner import default_run_name, merge_run, rollout_config, run_rollout
+
+    cfg = rollout_config(items)
+    if tag and cfg.run_name is None:
+        cfg.run_name = f"{default_run_name(cfg)}_{tag}"
+    merge_run(cfg) if merge else run_rollout(cfg)
 
 
 @app.command()
@@ -138,14 +153,21 @@ def collect(
     dataset: Optional[str] = typer.Option(None, "--dataset", help="LeRobot v3 dataset (vlactl demos, or your own)."),
     pooling: Optional[str] = typer.Option(None, "--pooling", help="prefix, last, image or text."),
     output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+    multirun: bool = MULTIRUN,
 ):
     """Per-layer pooled activations with robot labels for every dataset frame (resumable)."""
-    from vlactl.config import load_policy_stage_config
-    from vlactl.steering.collect import run_collect
+    given = _overrides(overrides, model=model, dataset=dataset, pooling=pooling, output_dir=output_dir)
+    _launch("collect", given, multirun, _collect_run, functools.partial(_policy_stage, "collect"),
+            named_by=("model", "dataset", "pooling"))
 
-    run_collect(load_policy_stage_config(
-        "collect", _overrides(overrides, model=model, dataset=dataset, pooling=pooling, output_dir=output_dir)
-    ))
+
+def _collect_run(items: list[str], tag: str) -> None:
+    from vlactl.steering.collect import default_output, run_collect
+
+    cfg = _policy_stage("collect", items)
+    if tag and cfg.output_dir is None:
+        cfg.output_dir = f"{default_output(cfg)}_{tag}"
+    run_collect(cfg)
 
 
 @app.command()
@@ -158,15 +180,24 @@ def sweep(
     multirun: bool = MULTIRUN,
 ):
     """Perturbation sweep (Fig. 2): action change per layer and alpha, and each layer's norm."""
+    given = _overrides(overrides, model=model, probes=probes, feature=feature, output_dir=output_dir)
+    _launch("sweep", given, multirun, _sweep_run, functools.partial(_policy_stage, "sweep"),
+            named_by=("model", "feature", "direction"))
+
+
+def _policy_stage(stage: str, items: list[str]):
     from vlactl.config import load_policy_stage_config
+
+    return load_policy_stage_config(stage, items)
+
+
+def _sweep_run(items: list[str], tag: str) -> None:
     from vlactl.steering.sweep import default_output, run_sweep
 
-    given = _overrides(overrides, model=model, probes=probes, feature=feature, output_dir=output_dir)
-    for items, tag in _runs(given, multirun, named_by=("model", "feature", "direction")):
-        cfg = load_policy_stage_config("sweep", items)
-        if tag and cfg.output_dir is None:
-            cfg.output_dir = f"{default_output(cfg)}_{tag}"
-        run_sweep(cfg)
+    cfg = _policy_stage("sweep", items)
+    if tag and cfg.output_dir is None:
+        cfg.output_dir = f"{default_output(cfg)}_{tag}"
+    run_sweep(cfg)
 
 
 @app.command()
@@ -191,15 +222,25 @@ def train_probes(
     activations: Optional[str] = typer.Option(None, "--activations", help="Activation folder (vlactl collect)."),
     run: Optional[str] = typer.Option(None, "--run", help="Run name; output under outputs/probes/<run>."),
     output_dir: Optional[str] = typer.Option(None, "--output-dir"),
+    multirun: bool = MULTIRUN,
 ):
     """Fit a linear probe per layer x feature; writes metrics.parquet and one safetensors file per probe."""
     from vlactl.config import load_config, quote_values
+
+    # a frame query is one value however many commas it holds; a sweep of queries comes quoted, each on its own
+    given = quote_values(_overrides(overrides, activations=activations, run=run, output_dir=output_dir), "frames")
+    _launch("train_probes", given, multirun, _train_probes_run, functools.partial(load_config, "train_probes"),
+            named_by=("activations", "run"))
+
+
+def _train_probes_run(items: list[str], tag: str) -> None:
+    from vlactl.config import load_config, resolve_path
     from vlactl.steering.train_probes import run_train_probes
 
-    run_train_probes(load_config(
-        "train_probes", quote_values(_overrides(overrides, activations=activations, run=run, output_dir=output_dir),
-                                     "frames")
-    ))
+    cfg = load_config("train_probes", items)
+    if tag and cfg.run is None and cfg.output_dir is None and cfg.activations:
+        cfg.run = f"{resolve_path(cfg.activations).name}_{tag}"
+    run_train_probes(cfg)
 
 
 plot_app = typer.Typer(no_args_is_help=True, help="The paper's figures, drawn from a stage's output files.")
