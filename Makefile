@@ -27,12 +27,16 @@ install: $(BIN)/python system-deps
 	$(BIN)/vlactl --help >/dev/null && echo "vlactl installed in $(VENV)"
 
 # The main job on the embedded default, small enough for a first run: list the suite, generate two demonstrations,
-# and run the shipped hybrid VLA closed loop on two episodes of each of two tasks (with a video).
+# run the shipped hybrid VLA closed loop on two episodes of each of two tasks, then one episode under height=high,
+# enforced by the controller with the shipped probes (videos of both: the constrained one captioned with the window,
+# the height against its bound and the push).
 demo: install
 	$(BIN)/vlactl tasks --suite libero_spatial
 	$(BIN)/vlactl demos suite=libero_spatial tasks=[0] episodes_per_task=2 workers=1 output_dir=outputs/demo/libero_spatial
 	$(BIN)/vlactl rollout model=hybrid suite=libero_spatial tasks=[0,1] episodes_per_task=2 workers=2 --video \
 	  output_root=outputs/demo run_name=hybrid_libero_spatial
+	$(BIN)/vlactl rollout --constraint height=high tasks=[0] episodes_per_task=1 workers=1 --video \
+	  output_root=outputs/demo run_name=hybrid_libero_spatial_height-high
 
 # Rebuild the shipped embedded models from scratch: the libero_spatial demo sets, then each model trained with its
 # own config (conf/model/<name>.yaml) on DATASET_<name>, then, for a model with CONTINUE_<name>, a second run from

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from vlactl.errors import UsageError
-from vlactl.rollout.runner import demo_constant, probes_run, resolved_method, rollout_config
+from vlactl.rollout.runner import SHIPPED_PROBES, demo_constant, probes_run, resolved_method, rollout_config, run_rollout
 
 
 def test_a_constraint_alone_means_the_controller_on_the_embedded_hybrid():
@@ -32,3 +32,16 @@ def test_constants_come_from_the_probe_run_when_the_demonstrations_are_not_on_di
     assert demo_constant(rollout_config(["metres_per_unit=0.02"]), "metres_per_unit", None) == 0.02
     with pytest.raises(UsageError, match="make it with `vlactl demos`"):
         demo_constant(cfg, "speed_threshold", tmp_path)
+
+
+@pytest.mark.skipif(not (SHIPPED_PROBES / "hybrid" / "steer" / "metrics.parquet").is_file(), reason="no shipped probes")
+def test_a_fresh_clone_steers_the_hybrid_with_its_shipped_probes(tmp_path):
+    import pandas as pd
+
+    summary = run_rollout(rollout_config(["constraint=height=high", "tasks=[0]", "episodes_per_task=1", "max_steps=6",
+                                          "workers=1", f"output_root={tmp_path}", f"demos={tmp_path / 'none'}"]))
+    assert summary["method"] == "control" and summary["model"] == "hybrid" and summary["steered_layers"]
+    steps = pd.read_parquet(tmp_path / "hybrid_libero_spatial_height-high_control" / "steps.parquet")
+    bounded = steps.dropna(subset=["bound_lo"])
+    assert bounded["t"].tolist() == [0, 5]  # every re-plan in the window (the hybrid re-plans every 5 actions)
+    assert bounded["bound_lo"].iloc[0] == pytest.approx(0.0)  # at the start height the barrier allows no descent
