@@ -61,7 +61,8 @@ def _job(cfg, run: Callable[[list[str], str], None], fixed: list[str], prefixes:
         run(fixed + items, tag)
     finally:
         GlobalHydra.instance().clear()
-        GlobalHydra.instance().initialize(launching)
+        if launching is not None:
+            GlobalHydra.instance().initialize(launching)
 
 
 def launch(stage: str, overrides: list[str], run: Callable[[list[str], str], None],
