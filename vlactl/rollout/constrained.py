@@ -32,6 +32,8 @@ STEERING = ("control", "alpha", "meandiff")
 READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share",
                    "action_before", "action_after", "bound_lo", "bound_hi", "passes")
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
+BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
+             # units): the minimal push puts it at the bound, not wherever a saturating push lands
 
 
 @dataclass(frozen=True)
@@ -47,7 +49,7 @@ class Steering:
     metres_per_unit: float = 0.0  # filter, box=action: hand motion per unit of translation command per step
     barrier_decay: float = 0.5
     box: str = "action"  # control: bound the predicted action (action) or the probe's reading of the state (state)
-    passes: int = 3  # box=action: steered re-predictions at most per re-plan
+    passes: int = 4  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
     hold_tolerance: float = 0.0
 
@@ -106,8 +108,12 @@ class ConstrainedAgent(VLAAgent):
         if lo <= before <= hi:
             self.readings[t] = {**row, "action_after": before}
             return actions
-        target = lo + 0.01 if before < lo else hi - 0.01  # just inside: the bound is met, not grazed
-        shifts, quantities, shift = [0.0], [before], target - before  # first guess: one reading unit per action unit
+        below = before < lo
+        target = lo + BAND / 2 if below else hi - BAND / 2  # inside the band past the bound
+        accept = (lo, lo + BAND) if below else (hi - BAND, hi)
+        # first guess: half a reading unit per action unit (pushes at expert layers saturate the actions quickly)
+        shifts, quantities, shift = [0.0], [before], (target - before) / 2
+        best = None
         for _ in range(plan.passes):
             self.vla.set_sampling_state(start)
             boxes = [ProbeBox(p, shift, shift, relative=True) for p in plan.probes] + self._held
@@ -116,7 +122,9 @@ class ConstrainedAgent(VLAAgent):
             quantity = action_quantity(constraint, actions)
             shifts.append(shift)
             quantities.append(quantity)
-            if lo <= quantity <= hi:
+            if lo <= quantity <= hi and (best is None or abs(quantity - target) < abs(best[1] - target)):
+                best = (actions, quantity, steerer.log)
+            if accept[0] <= quantity <= accept[1]:
                 break
             gain = (quantities[-1] - quantities[-2]) / (shifts[-1] - shifts[-2])
             # the secant step; a push that moved the quantity not at all: push twice as hard instead
@@ -125,8 +133,12 @@ class ConstrainedAgent(VLAAgent):
             if shift == last:  # at the largest shift allowed: the least-violating push found
                 break
         self.vla.set_sampling_state(drawn)
-        first = steerer.log[0]
-        pushes = [e["u_norm"] for e in steerer.log if e["row"] == 0 and e["feature"] == first["feature"]]
+        if best is not None:  # the satisfying pass nearest the bound; else the last, least-violating one
+            actions, quantity, log = best
+        else:
+            log = steerer.log
+        first = log[0]
+        pushes = [e["u_norm"] for e in log if e["row"] == 0 and e["feature"] == first["feature"]]
         self.readings[t] = {**row, "reading_before": first["before"], "reading_after": first["after"],
                             "u_norm": first["u_norm"], "control_active": True, "u_norm_all": sum(pushes),
                             "active_share": sum(u > 0 for u in pushes) / len(pushes), "action_after": quantity,

@@ -21,11 +21,12 @@ from dataclasses import dataclass
 from vlactl.errors import UsageError
 
 # feature -> (allowed values, default window, the step-table column judged = the probe feature box=state steers,
-#             the probe feature box=action steers: a read-out of the action the policy is about to take)
+#             the probe feature box=action steers: a read-out of the action the policy is about to take,
+#             the action read-outs box=action holds by default: those the constraint should leave alone)
 KINDS = {
-    "gripper": (("open", "closed"), 15, "gripper_action", "gripper_action"),
-    "height": (("low", "high"), 15, "z", "dz"),
-    "speed": (("low", "high"), 25, "speed", "speed"),
+    "gripper": (("open", "closed"), 15, "gripper_action", "gripper_action", ("dx", "dy", "dz")),
+    "height": (("low", "high"), 15, "z", "dz", ("dx", "dy", "gripper_action")),
+    "speed": (("low", "high"), 25, "speed", "speed", ("gripper_action",)),
 }
 BOXES = ("action", "state")
 PROMPTS = {  # what the prompting baseline appends to the instruction
@@ -55,6 +56,10 @@ class Constraint:
     @property
     def action_feature(self) -> str:
         return KINDS[self.feature][3]
+
+    @property
+    def holds(self) -> tuple[str, ...]:
+        return KINDS[self.feature][4]
 
     @property
     def upper(self) -> bool:

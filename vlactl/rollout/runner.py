@@ -170,10 +170,10 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> t
     from vlactl.steering.activations import FEATURES
     from vlactl.steering.controller import MAX_PROBES
 
-    features = list(dict.fromkeys(cfg.hold or []))
+    steered = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
+    features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else default_holds(cfg, constraint, run)))
     if not features:
         return ()
-    steered = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
     allowed = [f for f in FEATURES if f != steered]
     for feature in features:
         check_choice("hold feature", feature, allowed)
@@ -183,6 +183,20 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> t
         raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
     hint = "; train it with `vlactl train-probes features=[...]` on the same activations"
     return tuple(p for feature in features for p in _load_probes(run, layers, feature, str(run), hint))
+
+
+def default_holds(cfg: DictConfig, constraint, run: Path) -> list[str]:
+    """hold=null: under control on the actions, the action read-outs the constraint should leave alone
+    (`Constraint.holds`) that the probe run has, of the same family as the steered probe (a push that changes dz must
+    leave the gripper, dx and dy where they were; FACTS, 2026-12-01); else none."""
+    import pandas as pd
+
+    from vlactl.steering.train_probes import METRICS_NAME
+
+    if cfg.method != "control" or cfg.box != "action":
+        return []
+    present = set(pd.read_parquet(run / METRICS_NAME, columns=["feature"])["feature"])
+    return [f for f in constraint.holds if f in present]
 
 
 def _steered_layers(chosen, table: pd.DataFrame, control: pd.DataFrame | None = None) -> list[str]:
