@@ -32,6 +32,7 @@ STEERING = ("control", "alpha", "meandiff")
 READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share",
                    "action_before", "action_after", "bound_lo", "bound_hi", "passes")
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
+FIRST_GAIN = 0.1  # the search's first reading shift per action unit of the quantity's distance to the target
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
              # units): the minimal push puts it at the bound, not wherever a saturating push lands
 
@@ -49,7 +50,7 @@ class Steering:
     metres_per_unit: float = 0.0  # filter, box=action: hand motion per unit of translation command per step
     barrier_decay: float = 0.5
     box: str = "action"  # control: bound the predicted action (action) or the probe's reading of the state (state)
-    passes: int = 4  # box=action: steered re-predictions at most per re-plan
+    passes: int = 5  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
     hold_tolerance: float = 0.0
 
@@ -111,27 +112,36 @@ class ConstrainedAgent(VLAAgent):
         below = before < lo
         target = lo + BAND / 2 if below else hi - BAND / 2  # inside the band past the bound
         accept = (lo, lo + BAND) if below else (hi - BAND, hi)
-        # first guess: half a reading unit per action unit (pushes at expert layers saturate the actions quickly)
-        shifts, quantities, shift = [0.0], [before], (target - before) / 2
-        best = None
+        # Bracketing search on the reading shift: a push at an action-expert layer saturates the actions fast (dz goes
+        # -0.8 -> +0.5 for a shift of 0.05 at expert.5), a gripper logit slowly: start small, grow until the quantity
+        # crosses the target, then false position inside the bracket (bisection when it saturates).
+        inner, outer = (0.0, before - target), None  # (shift, quantity - target) short of and past the target
+        shift, passes, best = (target - before) * FIRST_GAIN, 0, None
         for _ in range(plan.passes):
             self.vla.set_sampling_state(start)
             boxes = [ProbeBox(p, shift, shift, relative=True) for p in plan.probes] + self._held
             with Steerer(self.vla, boxes, method="control") as steerer:
                 actions = self.predict(obs)
-            quantity = action_quantity(constraint, actions)
-            shifts.append(shift)
-            quantities.append(quantity)
+            quantity, passes = action_quantity(constraint, actions), passes + 1
             if lo <= quantity <= hi and (best is None or abs(quantity - target) < abs(best[1] - target)):
                 best = (actions, quantity, steerer.log)
             if accept[0] <= quantity <= accept[1]:
                 break
-            gain = (quantities[-1] - quantities[-2]) / (shifts[-1] - shifts[-2])
-            # the secant step; a push that moved the quantity not at all: push twice as hard instead
-            step = (target - quantity) / gain if abs(gain) > 1e-6 else shift
-            shift, last = max(-MAX_SHIFT, min(MAX_SHIFT, shift + step)), shift
-            if shift == last:  # at the largest shift allowed: the least-violating push found
-                break
+            miss = quantity - target
+            if (miss > 0) == (inner[1] > 0):  # still short of the target
+                gain = (miss - inner[1]) / (shift - inner[0])
+                inner = (shift, miss)
+                if outer is None:  # extrapolate, at most 4x further (4x if it did not move towards the target)
+                    guess = shift - miss / gain if gain * miss < 0 else 4 * shift
+                    guess = guess if abs(guess) <= 4 * abs(shift) else 4 * shift
+                    shift = max(-MAX_SHIFT, min(MAX_SHIFT, guess))
+                    continue
+            else:
+                outer = (shift, miss)
+            (s0, m0), (s1, m1) = inner, outer
+            guess = s0 - m0 * (s1 - s0) / (m1 - m0)  # false position; bisection where it would hug an end
+            width = abs(s1 - s0)
+            shift = guess if min(s0, s1) + 0.1 * width < guess < max(s0, s1) - 0.1 * width else (s0 + s1) / 2
         self.vla.set_sampling_state(drawn)
         if best is not None:  # the satisfying pass nearest the bound; else the last, least-violating one
             actions, quantity, log = best
@@ -142,5 +152,5 @@ class ConstrainedAgent(VLAAgent):
         self.readings[t] = {**row, "reading_before": first["before"], "reading_after": first["after"],
                             "u_norm": first["u_norm"], "control_active": True, "u_norm_all": sum(pushes),
                             "active_share": sum(u > 0 for u in pushes) / len(pushes), "action_after": quantity,
-                            "passes": len(shifts) - 1}
+                            "passes": passes}
         return actions
