@@ -113,3 +113,10 @@ def test_bad_filter_or_perturbation_settings_fail_before_any_worker(tmp_path, ex
     with pytest.raises(UsageError, match=message):
         run(tmp_path, *extra)
     assert not any(tmp_path.iterdir())
+
+
+def test_height_margin_moves_the_barrier_inside_the_allowed_side():
+    high, low = parse_constraint("height=high"), parse_constraint("height=low")
+    assert action_bound(high, 1.0, 1.0, 0.01, 0.5, margin=0.01)[0] == pytest.approx(0.5)  # at z0: must rise
+    assert action_bound(low, 1.0, 1.0, 0.01, 0.5, margin=0.01)[1] == pytest.approx(-0.5)  # at z0: must sink
+    assert action_bound(high, 1.03, 1.0, 0.01, 0.5, margin=0.01)[0] == pytest.approx(-1.0)

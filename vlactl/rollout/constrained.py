@@ -49,6 +49,7 @@ class Steering:
     speed_threshold: float = 0.0
     metres_per_unit: float = 0.0  # filter, box=action: hand motion per unit of translation command per step
     barrier_decay: float = 0.5
+    height_margin: float = 0.0  # filter, box=action: metres the height barrier's level lies inside the allowed side
     box: str = "action"  # control: bound the predicted action (action) or the probe's reading of the state (state)
     passes: int = 5  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
@@ -99,7 +100,7 @@ class ConstrainedAgent(VLAAgent):
         """The next actions, pushed only if they break this re-plan's action bound (box=action)."""
         plan, constraint = self.steering, self.constraint
         lo, hi = action_bound(constraint, float(obs.state[2]), self._level, plan.metres_per_unit, plan.barrier_decay,
-                              self.replan_every)
+                              self.replan_every, plan.height_margin)
         start = self.vla.sampling_state()
         actions = self.predict(obs)
         drawn = self.vla.sampling_state()

@@ -111,7 +111,7 @@ BARRIER_DECAY = 0.5  # share of the remaining distance to the bound a step may c
 
 
 def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit: float,
-                 decay: float = BARRIER_DECAY, steps: int = 1) -> tuple[float, float]:
+                 decay: float = BARRIER_DECAY, steps: int = 1, margin: float = 0.0) -> tuple[float, float]:
     """[lo, hi] on the action quantity the constraint acts on (`action_quantity`), for the next `steps` actions
     (docs/steering.md):
     - gripper: the gripper command, on the wanted side of 0;
@@ -121,13 +121,16 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
       low: the hand may approach the start height by `decay` of its distance per step, so it slows towards the bound
       instead of bouncing off it;
     - speed: the commanded translation's norm, |(dx, dy, dz)| <= (low) or >= (high) threshold dt / s.
-    A bound the formula puts on the wrong side of 0 (the hand already past the start height) asks for a move back."""
+    `margin` (metres) moves the height barrier's level that far to the allowed side of z0, so a hand that settles at
+    the level is judged satisfied (z >= z0) despite the few millimetres it wobbles. A bound the formula puts on the
+    wrong side of 0 (the hand already past the level) asks for a move back."""
     from vlactl.env.features import CONTROL_DT
 
     if constraint.feature == "gripper":
         return (0.0, math.inf) if constraint.upper else (-math.inf, 0.0)
     if constraint.feature == "height":
         rate = (1 - (1 - decay) ** steps) / (steps * metres_per_unit)
+        level = level + margin if constraint.upper else level - margin
         if constraint.upper:
             return (-rate * (z - level), math.inf)
         return (-math.inf, rate * (level - z))
@@ -149,14 +152,14 @@ def action_quantity(constraint: Constraint, actions):
 
 
 def filter_action(constraint: Constraint, action, z: float, level: float, metres_per_unit: float,
-                  decay: float = BARRIER_DECAY):
+                  decay: float = BARRIER_DECAY, margin: float = 0.0):
     """`method=filter`: the executed action changed as little as possible (in L2) so that its constrained quantity
     lies in `action_bound`: the gripper command forced to open / close, dz clipped to the barrier, the translation
     scaled to the speed bound (along its own direction). The oracle an action-space safety filter gives."""
     import numpy as np
 
     out = np.array(action, dtype=np.float64)
-    lo, hi = action_bound(constraint, z, level, metres_per_unit, decay)
+    lo, hi = action_bound(constraint, z, level, metres_per_unit, decay, margin=margin)
     if constraint.feature == "gripper":
         out[6] = 1.0 if constraint.upper else -1.0
     elif constraint.feature == "height":
@@ -170,7 +173,7 @@ def filter_action(constraint: Constraint, action, z: float, level: float, metres
 
 
 def filter_hook(constraint: Constraint, speed_threshold: float, metres_per_unit: float,
-                decay: float = BARRIER_DECAY):
+                decay: float = BARRIER_DECAY, margin: float = 0.0):
     """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window; the
     start height is the hand's z at the first policy step."""
     start = {}
@@ -181,7 +184,7 @@ def filter_hook(constraint: Constraint, speed_threshold: float, metres_per_unit:
         if t >= constraint.window:
             return action
         return filter_action(constraint, action, z, reference(constraint, start["z"], speed_threshold),
-                             metres_per_unit, decay)
+                             metres_per_unit, decay, margin)
 
     return hook
 
