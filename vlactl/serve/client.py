@@ -12,7 +12,6 @@ import numpy as np
 
 from vlactl.errors import UsageError
 from vlactl.rollout.agents import VLAAgent
-from vlactl.serve import protocol
 from vlactl.serve.wire import packb, unpackb
 
 CONNECT_S = 10.0  # how long a client keeps retrying a server that is not (yet) listening

@@ -4,8 +4,10 @@ Requests that arrive together are batched into one forward: the batcher takes th
 gathers more for at most `max_wait_s`, up to `max_batch_size`, and stops early once every connected client has a
 request in (none of them can send another before its reply). Each connection keeps its own noise stream
 (`VLA.predict_rows`), so a batched row gets the actions it would get predicted alone. Steered connections run in a
-`ConstrainedAgent` of their own, one request at a time, on the same model thread (the steering hooks are on the
-shared model while it runs). One bad message closes its own connection with a one-line error, never the server.
+`ConstrainedAgent` of their own, one request at a time (the steering hooks are on the shared model while it runs).
+The forward runs in the event loop itself, as openpi's server runs it: a hand-off to a model thread cost ~10 ms a
+request on a loaded CPU (benchmarks/bench_serve.py), and frames that come in meanwhile wait in the socket and join
+the next batch. One bad message closes its own connection with a one-line error, never the server.
 """
 
 from __future__ import annotations
@@ -13,8 +15,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from types import SimpleNamespace
 
 import numpy as np
@@ -38,7 +39,7 @@ class Pending:
     obs: dict
     reset: bool
     reply: asyncio.Future
-    arrived: float = field(default_factory=time.perf_counter)
+    arrived: float  # perf_counter when its frame came in
 
 
 class PolicyServer:
@@ -49,7 +50,6 @@ class PolicyServer:
         self.metadata = protocol.metadata(vla, model)
         self.max_batch_size, self.max_wait_s = int(max_batch_size), float(max_wait_s)
         self.batch_sizes: collections.Counter = collections.Counter()  # forwards per batch size, for the benchmark
-        self._model = ThreadPoolExecutor(1, thread_name_prefix="vlactl-model")  # one forward at a time
         self._queue: asyncio.Queue | None = None
         self._sessions = 0
 
@@ -70,12 +70,13 @@ class PolicyServer:
         """Metadata first, then one reply per request; a bad request ends the connection in one line."""
         await ws.send(packb(self.metadata))
         async for message in ws:
+            received = time.perf_counter()
             try:
                 request = unpackb(message) if isinstance(message, bytes) else None
                 if not isinstance(request, dict):
                     raise protocol.BadRequest("a request must be a msgpack map in a binary frame")
                 if "steer" in request:
-                    await self._run(self._steer, session, request["steer"])
+                    self._steer(session, request["steer"])
                     await ws.send(packb({"steered": True}))
                     continue
                 obs = protocol.observation(request, self.vla.cameras, self.vla.needs_images)
@@ -87,13 +88,14 @@ class PolicyServer:
                 await ws.close()
                 return
             pending = Pending(session, obs, bool(request.get("reset", False)),
-                              asyncio.get_running_loop().create_future())
+                              asyncio.get_running_loop().create_future(), received)
             await self._queue.put(pending)
             reply = await pending.reply
             if isinstance(reply, str):
                 await ws.send(reply)
                 await ws.close()
                 return
+            reply["server_timing"]["total_ms"] = 1000 * (time.perf_counter() - received)  # frame in to reply out
             await ws.send(packb(reply))
 
     def _steer(self, session: Session, message) -> None:
@@ -105,9 +107,6 @@ class PolicyServer:
                 raise UsageError(f"probe {probe.feature}@{probe.layer}: {self.vla.name} has no layer {probe.layer!r}")
             probe.check_fits(self.vla.name, self.metadata["layer_widths"].get(probe.layer), "prefix")
         session.agent = ConstrainedAgent(self.vla, constraint, steering, replan_every, snap)
-
-    async def _run(self, fn, *args):
-        return await asyncio.get_running_loop().run_in_executor(self._model, fn, *args)
 
     # --- batching ------------------------------------------------------------------------------------------
     async def batcher(self) -> None:
@@ -126,17 +125,17 @@ class PolicyServer:
             for p in plain:
                 groups[tuple((k, v.shape) for k, v in p.obs["images"].items())].append(p)
             for group in groups.values():
-                await self._answer(group, self._forward)
+                self._answer(group, self._forward)
             for p in steered:
-                await self._answer([p], self._step)
+                self._answer([p], self._step)
 
-    async def _answer(self, group: list[Pending], fn) -> None:
+    def _answer(self, group: list[Pending], fn) -> None:
         try:
-            replies = await self._run(fn, group)
+            replies = fn(group)
         except Exception as exc:  # noqa: BLE001 - a failing forward ends its own requests, not the server
             if len(group) > 1:  # one bad row must not fail the others: each alone
                 for p in group:
-                    await self._answer([p], fn)
+                    self._answer([p], fn)
                 return
             replies = [f"error: the model failed on this request ({type(exc).__name__}: {exc})".splitlines()[0]]
         for p, reply in zip(group, replies):
@@ -182,7 +181,8 @@ class PolicyServer:
         action = agent.act(seen)
         p.session.noise = self.vla.sampling_state()
         self.batch_sizes[1] += 1
-        return [{"actions": np.asarray(action, dtype=np.float32)[None], "reading": agent.readings.get(t)}]
+        return [{"actions": np.asarray(action, dtype=np.float32)[None], "reading": agent.readings.get(t),
+                 "server_timing": {"batch_size": 1}}]
 
     # --- running -------------------------------------------------------------------------------------------
     async def serve(self, host: str, port: int, ready=None, stop: asyncio.Event | None = None) -> None:
