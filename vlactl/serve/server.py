@@ -202,8 +202,12 @@ class PolicyServer:
 
 def run_serve(cfg) -> None:
     """`vlactl serve model=<name or checkpoint> [model options] host=... port=...`."""
+    import torch
+
     from vlactl.models.registry import policy_loader
 
+    if cfg.threads is not None:
+        torch.set_num_threads(int(cfg.threads))
     vla = policy_loader(cfg)(str(cfg.model))
     server = PolicyServer(vla, str(cfg.model), int(cfg.max_batch_size), float(cfg.max_wait_s))
     meta = server.metadata
