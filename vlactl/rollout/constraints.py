@@ -2,7 +2,7 @@
 
 A constraint is `<feature>=<value>`: `gripper=open|closed`, `height=low|high`, `speed=low|high`. It holds over the
 first `window` policy steps (15, 15 and 25 by default). Per step it is *satisfied* when
-- gripper: the commanded gripper action has the wanted sign (LIBERO: -1 opens, +1 closes);
+- gripper: the commanded gripper action has the wanted sign (LIBERO: -1 opens, +1 closes; 0, hold, is neither);
 - height: the end-effector z is below (low) / above (high) its value at the episode's first policy step;
 - speed: the end-effector speed is below (low) / above (high) a threshold, by default the median speed of the
   training demonstrations.
@@ -107,6 +107,7 @@ def box(constraint: Constraint, level: float, logit_margin: float = 2.0) -> tupl
     return (level, math.inf) if constraint.upper else (-math.inf, level)
 
 
+GRIPPER_BOUND = 0.5
 BARRIER_DECAY = 0.5  # share of the remaining distance to the bound a step may close (discrete-time barrier rate)
 
 
@@ -114,7 +115,7 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
                  decay: float = BARRIER_DECAY, steps: int = 1, margin: float = 0.0) -> tuple[float, float]:
     """[lo, hi] on the action quantity the constraint acts on (`action_quantity`), for the next `steps` actions
     (docs/steering.md):
-    - gripper: the gripper command, on the wanted side of 0;
+    - gripper: the mean gripper command, past +-0.5 on the wanted side (it then executes as close / open, not as hold);
     - height: the mean commanded dz, as a discrete-time barrier on h = +-(z - z0) >= 0: with z' = z + s dz (s =
       `metres_per_unit`, measured from the demonstrations), h' >= (1 - decay) h per step, i.e. over k steps for high
       mean dz >= -(1 - (1 - decay)^k) (z - z0) / (k s) (k = 1: dz >= -decay (z - z0) / s), and the mirror image for
@@ -126,8 +127,8 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
     wrong side of 0 (the hand already past the level) asks for a move back."""
     from vlactl.env.features import CONTROL_DT
 
-    if constraint.feature == "gripper":
-        return (0.0, math.inf) if constraint.upper else (-math.inf, 0.0)
+    if constraint.feature == "gripper":  # past +-0.5: the command snaps to close / open, not to hold (0)
+        return (GRIPPER_BOUND, math.inf) if constraint.upper else (-math.inf, -GRIPPER_BOUND)
     if constraint.feature == "height":
         rate = (1 - (1 - decay) ** steps) / (steps * metres_per_unit)
         level = level + margin if constraint.upper else level - margin
@@ -204,7 +205,10 @@ def judge_steps(constraint: Constraint, steps, start_z: float, speed_threshold: 
     level = reference(constraint, start_z, speed_threshold)
     values = steps[constraint.probe_feature].to_numpy(dtype=float)  # the step table names columns like the probes
     inside = steps["t"].to_numpy() < constraint.window
-    ok = values >= level if constraint.upper else values <= level
+    if constraint.feature == "gripper":  # the command's sign: 0 holds the fingers where they are, which is neither
+        ok = values > level if constraint.upper else values < level
+    else:
+        ok = values >= level if constraint.upper else values <= level
     steps = steps.assign(
         in_window=inside, constraint_value=values, constraint_level=level,
         satisfied=pd.array(np.where(inside, ok, False), dtype="boolean"),
