@@ -7,6 +7,10 @@ import os
 # MuJoCo picks its GL backend at import time; Mesa's EGL renders on the CPU without a display.
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+# No GPU visible (CUDA_VISIBLE_DEVICES='', as submitit's local launcher sets it): robosuite would pick its EGL device
+# with int(''); EGL's first device (Mesa's, on the CPU) is what it picks when the variable is unset.
+if os.environ.get("CUDA_VISIBLE_DEVICES") == "":
+    os.environ.setdefault("MUJOCO_EGL_DEVICE_ID", "0")
 
 # robosuite warns at import, in every worker, that it has no private macro file (three lines each); its defaults are
 # the ones LIBERO expects, so that notice is dropped and its other warnings kept.
