@@ -130,6 +130,8 @@ class ConstrainedAgent(VLAAgent):
                 break
             miss = quantity - target
             if (miss > 0) == (inner[1] > 0):  # still short of the target
+                if shift == inner[0]:  # at the largest shift allowed: the least-violating push found
+                    break
                 gain = (miss - inner[1]) / (shift - inner[0])
                 inner = (shift, miss)
                 if outer is None:  # extrapolate, at most 4x further (4x if it did not move towards the target)
