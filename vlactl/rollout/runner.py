@@ -258,6 +258,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     constraint = parse_constraint(cfg.constraint, cfg.window)
     check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
     cfg.method = resolved_method(cfg)
+    if cfg.hold is None and not (cfg.method == "control" and cfg.box == "action"):
+        cfg.hold = []  # saved resolved: only control on the actions holds anything by default
     plan = steering(cfg, constraint)
     perturbation = parse_perturbation(cfg.perturb, cfg.perturb_start, cfg.perturb_steps, cfg.perturb_size, cfg.max_steps)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
