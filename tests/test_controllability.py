@@ -154,6 +154,7 @@ def test_rollout_default_layers_follow_the_table(probe_runs, tmp_path):
     # end to end: the probe run's own table decides what layers=null steers
     probes = tmp_path / "probes"
     shutil.copytree(source, probes)
+    (probes / "controllability.parquet").unlink(missing_ok=True)  # the tests before measured the shared run
 
     def steered():
         cfg = rollout_config(["model=random", "constraint=gripper=closed", "method=control", f"probes={probes}",
