@@ -14,7 +14,7 @@ from vlactl.errors import UsageError
 from vlactl.rollout.agents import VLAAgent
 from vlactl.serve.wire import packb, unpackb
 
-CONNECT_S = 10.0  # how long a client keeps retrying a server that is not (yet) listening
+CONNECT_S = 30.0  # how long a client keeps retrying a server that is not (yet) listening, or busy in a forward
 REPLY_S = 300.0  # a reply slower than this means the server is stuck (a first CUDA forward takes seconds)
 RESUME = "the episodes in flight were not written; re-run the same command to resume"
 
