@@ -164,7 +164,7 @@ def test_layers_split_among_threads_give_the_probes_of_one_fit(planted):
     finally:
         torch.set_num_threads(threads)
     for name in whole.TENSORS:
-        torch.testing.assert_close(getattr(split, name), getattr(whole, name), rtol=1e-6, atol=1e-9, equal_nan=True)
+        torch.testing.assert_close(getattr(split, name), getattr(whole, name), rtol=1e-5, atol=1e-7, equal_nan=True)
 
 
 class _FactoriesWithoutDevice(torch.overrides.TorchFunctionMode):

@@ -65,7 +65,6 @@ def test_resume_refuses_other_settings(rollout):
         (["model=scripted", "suite=libero_nope"], "libero_nope"),
         (["model=scripted", "--episodes-per-task", "-1"], "episodes_per_task"),
         (["model=no_such_model"], "no_such_model"),
-        ([], "model"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, needle, tmp_path):

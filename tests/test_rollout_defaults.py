@@ -44,4 +44,4 @@ def test_a_fresh_clone_steers_the_hybrid_with_its_shipped_probes(tmp_path):
     steps = pd.read_parquet(tmp_path / "hybrid_libero_spatial_height-high_control" / "steps.parquet")
     bounded = steps.dropna(subset=["bound_lo"])
     assert bounded["t"].tolist() == [0, 5]  # every re-plan in the window (the hybrid re-plans every 5 actions)
-    assert bounded["bound_lo"].iloc[0] == pytest.approx(0.0)  # at the start height the barrier allows no descent
+    assert bounded["bound_lo"].iloc[0] > 0  # at the start height, below its 1 cm margin: the barrier asks for a rise

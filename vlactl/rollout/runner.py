@@ -257,9 +257,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
     constraint = parse_constraint(cfg.constraint, cfg.window)
     check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
-    cfg.method = resolved_method(cfg)
-    if cfg.hold is None and not (cfg.method == "control" and cfg.box == "action"):
-        cfg.hold = []  # saved resolved: only control on the actions holds anything by default
+    resolve_defaults(cfg)
     plan = steering(cfg, constraint)
     perturbation = parse_perturbation(cfg.perturb, cfg.perturb_start, cfg.perturb_steps, cfg.perturb_size, cfg.max_steps)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
@@ -331,7 +329,7 @@ def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
         raise UsageError("merge needs the run's overrides, model=... included, as its shards were given")
     check_choice("suite", cfg.suite, SUITES)
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps  # resolved as the shards saved
-    cfg.method = resolved_method(cfg)
+    resolve_defaults(cfg)
     cfg.start_gripper = start_gripper(cfg.start_gripper, parse_constraint(cfg.constraint, cfg.window), cfg.method)
     out = run_dir(cfg)
     folders = shards.folders(out)
@@ -400,6 +398,14 @@ def judge_run(
                "start_gripper": gripper}
         steps = judge_part(constraint, row, pd.read_parquet(base.with_suffix(".parquet")), plan.speed_threshold, {})
         parts.write(out, row, steps)
+
+
+def resolve_defaults(cfg: DictConfig) -> None:
+    """The method and holds a run is saved with (a run and its merge resolve them alike): null method is control under a
+    constraint, null holds are [] unless control on the actions holds by default (`default_holds`)."""
+    cfg.method = resolved_method(cfg)
+    if cfg.hold is None and not (cfg.method == "control" and cfg.box == "action"):
+        cfg.hold = []
 
 
 def resolved_method(cfg: DictConfig) -> str:

@@ -36,8 +36,9 @@ def _shard_path(folder: Path, layer: str, index: int) -> Path:
 def _read_meta(folder: Path) -> dict:
     path = folder / "meta.json"
     if not path.is_file():
-        raise UsageError(f"{str(folder)!r} is not an activation folder (no meta.json); write one with `vlactl collect` "
-                         "(the libero_spatial demo set, every=4: about 10 min on 2 cores)")
+        raise UsageError(f"{str(folder)!r} is not an activation folder (no meta.json); pass activations=<folder> or "
+                         "write one with `vlactl collect` (the libero_spatial demo set, every=4: about 10 min on 2 "
+                         "cores)")
     meta = json.loads(path.read_text())
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise UsageError(
