@@ -161,13 +161,18 @@ def collect(
             named_by=("model", "dataset", "pooling"))
 
 
-def _collect_run(items: list[str], tag: str) -> None:
-    from vlactl.steering.collect import default_output, run_collect
+def _tagged_run(stage: str, module: str, items: list[str], tag: str) -> None:
+    """One run of a collect or sweep multirun: in its default output folder with the swept keys' tag appended."""
+    import importlib
 
-    cfg = _policy_stage("collect", items)
+    stage_module = importlib.import_module(module)
+    cfg = _policy_stage(stage, items)
     if tag and cfg.output_dir is None:
-        cfg.output_dir = f"{default_output(cfg)}_{tag}"
-    run_collect(cfg)
+        cfg.output_dir = f"{stage_module.default_output(cfg)}_{tag}"
+    getattr(stage_module, f"run_{stage}")(cfg)
+
+
+_collect_run = functools.partial(_tagged_run, "collect", "vlactl.steering.collect")
 
 
 @app.command()
@@ -191,13 +196,7 @@ def _policy_stage(stage: str, items: list[str]):
     return load_policy_stage_config(stage, items)
 
 
-def _sweep_run(items: list[str], tag: str) -> None:
-    from vlactl.steering.sweep import default_output, run_sweep
-
-    cfg = _policy_stage("sweep", items)
-    if tag and cfg.output_dir is None:
-        cfg.output_dir = f"{default_output(cfg)}_{tag}"
-    run_sweep(cfg)
+_sweep_run = functools.partial(_tagged_run, "sweep", "vlactl.steering.sweep")
 
 
 @app.command()
