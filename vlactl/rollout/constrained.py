@@ -90,10 +90,7 @@ class ConstrainedAgent(VLAAgent):
         method = "direction" if self.steering.method == "meandiff" else self.steering.method
         with Steerer(self.vla, self._boxes, method=method, alpha=alpha, directions=self.steering.directions) as steerer:
             action = super().act(obs)
-        first = steerer.log[0]  # the first forward through the first steered layer (row 0: one observation)
-        pushes = [e["u_norm"] for e in steerer.log if e["row"] == 0 and e["feature"] == first["feature"]]  # one per forward
-        self.readings[t] = dict(zip(READING_COLUMNS, (first["before"], first["after"], first["u_norm"], first["active"],
-                                                      sum(pushes), sum(u > 0 for u in pushes) / len(pushes))))
+        self.readings[t] = push_record(steerer.log)
         return action
 
     def _bounded_chunk(self, obs, t: int):
@@ -150,10 +147,15 @@ class ConstrainedAgent(VLAAgent):
             actions, quantity, log = best
         else:
             log = steerer.log
-        first = log[0]
-        pushes = [e["u_norm"] for e in log if e["row"] == 0 and e["feature"] == first["feature"]]
-        self.readings[t] = {**row, "reading_before": first["before"], "reading_after": first["after"],
-                            "u_norm": first["u_norm"], "control_active": True, "u_norm_all": sum(pushes),
-                            "active_share": sum(u > 0 for u in pushes) / len(pushes), "action_after": quantity,
-                            "passes": passes}
+        self.readings[t] = {**row, **push_record(log), "action_after": quantity, "passes": passes}
         return actions
+
+
+def push_record(log: list[dict]) -> dict:
+    """A steered prediction's reading columns from its Steerer log: the reading at the first forward through the first
+    steered layer (row 0: one observation), and the push summed over every forward of that prediction."""
+    first = log[0]
+    pushes = [e["u_norm"] for e in log if e["row"] == 0 and e["feature"] == first["feature"]]  # one per forward
+    return {"reading_before": first["before"], "reading_after": first["after"], "u_norm": first["u_norm"],
+            "control_active": first["active"], "u_norm_all": sum(pushes),
+            "active_share": sum(u > 0 for u in pushes) / len(pushes)}

@@ -32,8 +32,7 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
                  "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
-                 "perturb_steps", "perturb_size", "box", "passes",
-                 "height_margin")
+                 "perturb_steps", "perturb_size", "box", "passes", "height_margin")
 SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
@@ -93,8 +92,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
                     metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
-                    height_margin=float(cfg.height_margin),
-                    passes=int(cfg.passes))
+                    height_margin=float(cfg.height_margin), passes=int(cfg.passes))
 
 
 def probes_run(cfg: DictConfig) -> Path:
@@ -120,17 +118,23 @@ def probes_run(cfg: DictConfig) -> Path:
 
 def _check_probe_weights(run: Path, model: str) -> None:
     """Probes fitted on other weights of the same model name (a retrained checkpoint) read nothing: refused."""
-    import json
-
     from vlactl.models.registry import weights_fingerprint
-    from vlactl.steering.train_probes import PROBE_PROVENANCE
 
-    recorded = run / PROBE_PROVENANCE
-    fitted = json.loads(recorded.read_text()).get("weights") if recorded.is_file() else None
+    fitted = probe_provenance(run).get("weights")
     current = weights_fingerprint(model) if fitted else None
     if fitted and current and fitted != current:
         raise UsageError(f"the probes in {str(run)!r} were fitted on weights {fitted} of {model!r}, not on its weights "
                          f"now ({current}); refit them (`make probes`, or collect + train-probes)")
+
+
+def probe_provenance(run: Path | None) -> dict:
+    """What `vlactl train-probes` recorded about a probe run (model, weights, demo constants); {} if nothing."""
+    import json
+
+    from vlactl.steering.train_probes import PROBE_PROVENANCE
+
+    recorded = run / PROBE_PROVENANCE if run is not None else None
+    return json.loads(recorded.read_text()) if recorded is not None and recorded.is_file() else {}
 
 
 def shipped_probe_models() -> list[str]:
@@ -140,19 +144,16 @@ def shipped_probe_models() -> list[str]:
 def demo_constant(cfg: DictConfig, key: str, run: Path | None) -> float:
     """speed_threshold / metres_per_unit: as given, else measured from `demos` when it is on disk, else the value the
     probe run recorded from its own demonstrations (vlactl.data.motion)."""
-    import json
-
     from vlactl.data import motion
-    from vlactl.steering.train_probes import PROBE_PROVENANCE
 
     if cfg[key] is not None:
         return float(cfg[key])
     demos = resolve_path(cfg.demos)
     if (demos / "meta").is_dir():
         return motion.speed_median(demos) if key == "speed_threshold" else motion.metres_per_unit(demos)
-    recorded = run / PROBE_PROVENANCE if run is not None else None
-    if recorded is not None and recorded.is_file() and key in json.loads(recorded.read_text()):
-        return float(json.loads(recorded.read_text())[key])
+    recorded = probe_provenance(run)
+    if key in recorded:
+        return float(recorded[key])
     raise UsageError(f"{key} is measured from the demonstrations, and demos={cfg.demos!r} is no demonstration set; "
                      f"make it with `vlactl demos` (about 50 min on 2 cores) or give {key}=...")
 
