@@ -205,3 +205,32 @@ def test_probes_move_between_devices_whole(planted):
     tensors = [f.name for f in dataclasses.fields(probes) if isinstance(getattr(probes, f.name), torch.Tensor)]
     assert len(tensors) == 6 and all(getattr(moved, name).is_meta for name in tensors)
     assert moved.kinds == probes.kinds and not probes.weight.is_meta
+
+
+@pytest.mark.parametrize("family", ["meandiff", "covariance"])
+def test_steering_families_find_the_planted_direction_and_read_in_feature_units(planted, family):
+    data, y, train, test, folds, _, _ = planted
+    probes = fit_probes(torch.from_numpy(data.x), y, [REGRESSION] * 3 + [LOGISTIC], train, folds,
+                        ProbeSettings(family=family))
+    readings = probes.readings(torch.from_numpy(data.x)[:, torch.as_tensor(test)])
+    m = regression_metrics(readings[..., :3], torch.as_tensor(y[test, :3]), torch.as_tensor(y[train, :3].mean(0)))
+    here = torch.as_tensor(data.planted[:, :3])
+    # one direction and its scale, not every weight: less than the fitted probes' 0.8, far above the absent features
+    assert bool((m["r2"][here] > 0.3).all()) and bool((m["r2"][~here].abs() < 0.2).all()), m["r2"]
+    fitted = probes.readings(torch.from_numpy(data.x)[:, torch.as_tensor(train)])
+    slope = [np.polyfit(fitted[li, :, fi].numpy(), y[train, fi], 1)[0] for li, fi in zip(*np.nonzero(here.numpy()))]
+    assert np.allclose(slope, 1.0, atol=1e-6), slope  # the fitted scale puts the reading in the feature's units
+    assert torch.isnan(probes.lam).all() and torch.isnan(probes.cv_r2).all()  # no penalty was chosen
+    logits = readings[..., 3][torch.as_tensor(data.planted[:, 3])]
+    labels = torch.as_tensor(y[test, 3], dtype=torch.bool)
+    assert bool(((logits > 0) == labels).double().mean(-1).min() > 0.6)  # classes about even: 0.5 by chance
+
+
+def test_covariance_direction_is_where_ridge_goes_as_its_penalty_grows(planted):
+    data, y, train, test, folds, _, _ = planted
+    x = torch.from_numpy(data.x)
+    kinds = [REGRESSION] * 3 + [LOGISTIC]
+    ridge = fit_probes(x, y, kinds, train, folds, ProbeSettings(ridge_grid=(1e9,)))
+    cov = fit_probes(x, y, kinds, train, folds, ProbeSettings(family="covariance"))
+    cos = torch.nn.functional.cosine_similarity(ridge.weight[:, :3], cov.weight[:, :3], dim=-1)
+    assert bool((cos > 0.999).all()), cos

@@ -71,6 +71,7 @@ def test_train_probes_then_plot(acts, tmp_path, monkeypatch, capsys):
     (["train-probes", "@ACTS", "frames=frame_index + 1"], "true/false"),
     (["train-probes", "@ACTS", "frames=frame_index > 1000"], "no frame"),
     (["train-probes", "@ACTS", "device=tpu"], "tpu"),
+    (["train-probes", "@ACTS", "family=pca"], "meandiff"),
     (["train-probes", "@ACTS", "device=cuda:99"], "cuda:99"),
     (["plot", "probes"], "run_dir="),
     (["plot", "probes", "run_dir=/nowhere"], "/nowhere"),
@@ -91,6 +92,17 @@ def test_frames_query_trains_on_the_chosen_frames_only(acts, tmp_path, monkeypat
     table = pd.read_parquet(tmp_path / "early" / "metrics.parquet")
     full = 24 * 25
     assert (table["n_train"] + table["n_test"] == 24 * 10).all() and (table["n_train"] < full).all()
+
+
+def test_a_steering_family_is_recorded_per_probe(acts, tmp_path, monkeypatch, capsys):
+    folder, _ = acts
+    code, err = run_here(monkeypatch, capsys, "train-probes", f"activations={folder}", f"output_dir={tmp_path / 'md'}",
+                         "features=[z,gripper]", "family=meandiff", "robustness_directions=2")
+    assert code == 0, err
+    table = pd.read_parquet(tmp_path / "md" / "metrics.parquet")
+    assert set(table["family"]) == {"meandiff"} and table["penalty"].isna().all()
+    best = table.groupby("feature")[["r2", "balanced_accuracy"]].max()
+    assert best.loc["z", "r2"] > 0.2 and best.loc["gripper", "balanced_accuracy"] > 0.6, best
 
 
 def test_an_interrupted_run_resumes_from_its_finished_layers(acts, tmp_path, monkeypatch, capsys):

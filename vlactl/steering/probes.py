@@ -3,7 +3,9 @@
 Inputs are standardised per layer with the training split's mean and std; the standardisation is then folded into
 the weights, so a probe is a plain linear map on the layer's original (pooled) representation, which is what the
 controller needs. Continuous features get ridge probes (vlactl.steering.ridge), binary ones logistic probes
-(vlactl.steering.logistic); for those the reading is the logit.
+(vlactl.steering.logistic); for those the reading is the logit. A steering family (`ProbeSettings.family`,
+vlactl.steering.directions) instead takes a direction (class-mean difference, covariance with the label) and fits only
+the scale along it.
 
 When the layer is wider than the training set (d > n) the fit runs in the n-dimensional span of the training rows
 (the kernel form): Z = U diag(sqrt(e)) V^T from the eigendecomposition of Z Z^T. Ridge and L2-logistic solutions lie
@@ -19,6 +21,7 @@ import numpy as np
 import torch
 
 from vlactl.errors import UsageError
+from vlactl.steering.directions import scaled_directions
 from vlactl.steering.logistic import fit_logistic
 from vlactl.steering.ridge import fit_ridge
 
@@ -30,6 +33,7 @@ class ProbeSettings:
     ridge_grid: tuple[float, ...] = (1e-1, 1.0, 1e1, 1e2, 1e3, 1e4, 1e5)
     logistic_l2: float = 1.0  # scikit-learn's default, C = 1
     newton_steps: int = 20
+    family: str = "fit"  # vlactl.steering.directions.FAMILIES: every weight fitted, or a direction and its scale
 
 
 @dataclass
@@ -180,7 +184,11 @@ def _fit_layers(
     b = torch.zeros(n_layers, n_feat, dtype=torch.float64, device=dev)
     lam = torch.full((n_layers, n_feat), float(settings.logistic_l2), dtype=torch.float64, device=dev)
     cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64, device=dev)
-    reg = [i for i, k in enumerate(kinds) if k == REGRESSION]
+    if settings.family != "fit":
+        w, b = scaled_directions(z, labels, [k == LOGISTIC for k in kinds], settings.family, settings.logistic_l2,
+                                 settings.newton_steps)
+        lam.fill_(float("nan"))
+    reg = [i for i, k in enumerate(kinds) if k == REGRESSION] if settings.family == "fit" else []
     gram = None
     if reg:
         grid = torch.tensor(settings.ridge_grid, dtype=torch.float64, device=dev)
@@ -188,7 +196,7 @@ def _fit_layers(
         w[:, :, reg], b[:, reg], lam[:, reg], cv_r2[:, reg] = fit.weight, fit.bias, fit.lam, fit.cv_r2
         gram = fit.moments.augmented_gram()  # the logistic probes' first Hessian, up to a constant
     for i, kind in enumerate(kinds):
-        if kind == LOGISTIC:
+        if kind == LOGISTIC and settings.family == "fit":
             w[:, :, i], b[:, i] = fit_logistic(
                 z, labels[:, i], settings.logistic_l2, settings.newton_steps, gram=gram
             )

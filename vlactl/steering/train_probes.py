@@ -13,9 +13,10 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, resolve_path, save_config
-from vlactl.errors import UsageError, check_device, check_positive
+from vlactl.errors import UsageError, check_choice, check_device, check_positive
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, keyed_parts
 from vlactl.steering.activations import FEATURES, ActivationStore
+from vlactl.steering.directions import FAMILIES
 from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
 from vlactl.steering.probe_file import save_probe
 from vlactl.steering.probes import LOGISTIC, REGRESSION, ProbeSettings, fit_probes
@@ -30,7 +31,7 @@ PROBE_PROVENANCE = "provenance.json"  # a probe run's model, weights, dataset an
 METRICS_NAME = "metrics.parquet"
 # The settings that change a probe or its metrics (not where or how fast it is fitted); with the activation folder
 # they key the finished layers an interrupted run resumes from.
-RESULT_KEYS = ("frames", "test_fraction", "cv_folds", "seed", "ridge_grid", "logistic_l2", "newton_steps",
+RESULT_KEYS = ("frames", "test_fraction", "cv_folds", "seed", "family", "ridge_grid", "logistic_l2", "newton_steps",
                "robustness_norms", "robustness_directions", "robustness_frames")
 
 
@@ -77,6 +78,7 @@ def _check(cfg: DictConfig) -> None:
     if not cfg.ridge_grid or min(cfg.ridge_grid) <= 0:
         raise UsageError(f"ridge_grid must be a non-empty list of penalties > 0, got {list(cfg.ridge_grid or [])}")
     check_positive("logistic_l2", cfg.logistic_l2)
+    check_choice("family", cfg.family, FAMILIES)
     check_device("device", cfg.device)
 
 
@@ -116,7 +118,7 @@ def run_train_probes(cfg: DictConfig) -> Path:
     torch.set_num_threads(cfg.threads)
     settings = ProbeSettings(
         ridge_grid=tuple(float(v) for v in cfg.ridge_grid), logistic_l2=float(cfg.logistic_l2),
-        newton_steps=int(cfg.newton_steps),
+        newton_steps=int(cfg.newton_steps), family=str(cfg.family),
     )
     # a collect resumed since adds frames, and so changes the split; device, threads and layer batch change nothing
     resolved = OmegaConf.to_container(cfg, resolve=True)
@@ -202,7 +204,8 @@ def _fit_batch(cfg, store, batch, features, kinds, y, train, test, folds, settin
             row = {
                 "model": store.model, "pooling": store.pooling, "layer": layer,
                 "layer_index": store.layers.index(layer), "steerable": layer in store.steerable,
-                "feature": feature, "kind": kinds[fi], "n_train": len(train), "n_test": len(test),
+                "feature": feature, "kind": kinds[fi], "family": settings.family, "n_train": len(train),
+                "n_test": len(test),
                 "penalty": float(probes.lam[li, fi]), "cv_r2": float(probes.cv_r2[li, fi]),
                 "weight_norm": float(probes.weight[li, fi].norm()),
             }
