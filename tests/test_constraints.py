@@ -1,12 +1,16 @@
-"""Constraint parsing, judging, boxes and prompts (pure functions)."""
+"""Constraint parsing, judging, boxes, filters and prompts, one constraint or several (pure functions)."""
 
 import math
+
+import numpy as np
 
 import pandas as pd
 import pytest
 
 from vlactl.errors import UsageError
-from vlactl.rollout.constraints import KINDS, box, judge_steps, parse_constraint, prompted, start_gripper
+from vlactl.rollout.constraints import (KINDS, Constraint, action_bound, box, constraint_name, filter_actions,
+                                       held_by_default, judge_all, judge_steps, parse_constraint, parse_constraints,
+                                       prompted, start_gripper)
 
 
 def test_parse_defaults_and_none():
@@ -65,3 +69,83 @@ def test_prompt_appends_the_constraint():
 ])
 def test_start_gripper_follows_the_paper_for_its_baselines(setting, constraint, method, expected):
     assert start_gripper(setting, parse_constraint(constraint), method) == expected
+
+
+# --- several constraints at once ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("text", ["[height=high,speed=low]", "height=high,speed=low", "[speed=low, height=high]",
+                                  ["speed=low", "height=high"]])
+def test_several_constraints_parse_to_one_canonical_list(text):
+    constraints = parse_constraints(text, window=7)
+    assert constraint_name(constraints) == "height=high,speed=low"  # KINDS order, whatever the order typed
+    assert [c.window for c in constraints] == [7, 7]
+    assert [c.window for c in parse_constraints(text)] == [15, 25]  # each its own default window
+    assert parse_constraints("none") == () and constraint_name(()) == "none"
+    assert parse_constraints("gripper=open") == (parse_constraint("gripper=open"),)
+    assert parse_constraints("[gripper=open]") == (parse_constraint("gripper=open"),)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[height=high,speed=slow]", r"unknown constraint 'speed=slow' in constraint=\[height=high,speed=slow\]; "
+                                 r"allowed: gripper=open\|closed, height=low\|high, speed=low\|high"),
+    ("height=high,colour=red", "unknown constraint 'colour=red'"),
+    ("[height=low,height=high]", r"two constraints on height \(height=low, height=high\); one per feature"),
+    ("[speed=low,speed=low]", "two constraints on speed"),
+    ("[]", r"names no constraint; give one or more of gripper=open\|closed"),
+    ("[height=high,none]", "'none' cannot be in a list"),
+    ("[height=high,,speed=low]", "'an empty entry' cannot be in a list"),
+    ("[height=high", "unbalanced brackets"),
+])
+def test_bad_constraint_lists_are_one_line_usage_errors(text, message):
+    with pytest.raises(UsageError, match=message) as error:
+        parse_constraints(text)
+    assert "\n" not in str(error.value)
+
+
+def test_several_constraints_hold_what_every_one_holds_and_none_steers():
+    assert held_by_default(parse_constraints("[height=high,speed=low]")) == ("gripper_action",)
+    assert held_by_default(parse_constraints("[gripper=open,height=low]")) == ("dx", "dy")
+    assert held_by_default(parse_constraints("[gripper=open,speed=low]")) == ()
+    for feature, (values, *_, holds) in KINDS.items():  # one constraint: its own holds, as before
+        assert held_by_default(parse_constraint(f"{feature}={values[0]}")) == holds
+
+
+def test_several_constraints_are_judged_each_in_its_own_window():
+    constraints = (Constraint("height", "high", 2), Constraint("speed", "low", 4))
+    table = steps(z=[0.93, 0.91, 0.91, 0.95, 0.95], speed=[0.05, 0.05, 0.2, 0.05, 0.2])  # start 0.92, threshold 0.1
+    judged, satisfaction, own = judge_all(constraints, table, 0.92, 0.1)
+    assert judged["in_window_height"].tolist() == [True, True, False, False, False]
+    assert judged["in_window"].tolist() == [True, True, True, True, False]
+    assert [None if v is pd.NA else bool(v) for v in judged["satisfied_height"]] == [True, False, None, None, None]
+    assert [None if v is pd.NA else bool(v) for v in judged["satisfied"]] == [True, False, False, True, None]
+    assert satisfaction == pytest.approx(2 / 4) and own == {"height": 0.5, "speed": pytest.approx(3 / 4)}
+    assert "constraint_value" not in judged and "constraint_value_speed" in judged
+    one, alone = judge_steps(constraints[0], table, 0.92, 0.1)
+    assert judge_all(constraints[:1], table, 0.92, 0.1)[1] == alone and "satisfied_height" not in one
+
+
+def test_filter_of_height_and_speed_satisfies_both_where_it_can():
+    high, low = parse_constraints("[height=high,speed=low]")
+    z, z0, threshold, scale = 0.995, 1.0, 0.1, 0.01  # below the start height: the barrier asks for a rise
+    lo = action_bound(high, z, z0, scale)[0]
+    fast = action_bound(low, z, threshold, scale)[1]
+    assert lo == pytest.approx(0.25) and fast == pytest.approx(0.5)
+    a = np.array([0.6, 0.0, -0.5, 0.1, 0.0, 0.0, -1.0])  # too fast and going down
+    out = filter_actions((high, low), a, z, z0, threshold, scale)
+    assert out[2] >= lo - 1e-9 and np.linalg.norm(out[:3]) <= fast + 1e-9 and np.array_equal(out[3:], a[3:])
+    assert out[2] == pytest.approx(lo) and np.linalg.norm(out[:3]) == pytest.approx(fast)  # both bounds bind
+    assert out[1] == 0.0 and out[0] == pytest.approx(np.sqrt(fast ** 2 - lo ** 2))  # x kept as much as it can be
+    fine = np.array([0.1, 0.1, 0.3, 0.0, 0.0, 0.0, 1.0])
+    assert np.array_equal(filter_actions((high, low), fine, z, z0, threshold, scale), fine)  # nothing to change
+    out = filter_actions((high, low), a, 0.98, z0, 0.02, scale)  # needs dz >= 1 at speed <= 0.1: infeasible
+    assert out[2] == pytest.approx(action_bound(high, 0.98, z0, scale)[0]) and out[:2].tolist() == [0.0, 0.0]
+    gripper, height = parse_constraints("[gripper=closed,height=high]")
+    out = filter_actions((gripper, height), a, z, z0, threshold, scale)
+    assert out[6] == 1.0 and out[2] == pytest.approx(lo)
+
+
+def test_several_constraints_are_said_in_the_prompt_and_favour_the_gripper_start():
+    both = parse_constraints("[gripper=closed,height=low]")
+    assert prompted("pick up the bowl", both) == "pick up the bowl and keep the gripper closed and stay low"
+    assert start_gripper("auto", both, "prompt") == "closed" and start_gripper("auto", both, "control") == "open"
+    assert start_gripper("auto", parse_constraints("[height=low,speed=low]"), "none") == "open"

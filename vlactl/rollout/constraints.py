@@ -10,7 +10,9 @@ For control, each maps to a box: with `box=action` (the default) on what the pol
 every re-plan from the current state (`action_bound`: the gripper command's side, a discrete-time barrier on the
 commanded dz, the commanded speed); with `box=state` on one probe's reading of the state: the gripper-action logit
 beyond +-`logit_margin`, the z reading on the wanted side of the start height, the speed reading on the wanted side of
-the threshold. Pure functions: no model, no simulator.
+the threshold. Several constraints at once (`[height=high,speed=low]`, one per feature: `parse_constraints`) are
+each judged in their own window, filtered together, and steered in one multi-box QP (docs/steering.md, "Several
+constraints"). Pure functions: no model, no simulator.
 """
 
 from __future__ import annotations
@@ -67,32 +69,96 @@ class Constraint:
         return self.value in ("closed", "high")
 
 
+def _allowed() -> str:
+    return ", ".join(f"{f}={'|'.join(values)}" for f, (values, *_) in KINDS.items())
+
+
 def parse_constraint(text: str, window: int | None = None) -> Constraint | None:
     """`gripper=open` -> Constraint; `none` -> None. A bad feature or value is a UsageError naming what is allowed."""
     if text in (None, "", "none"):
         return None
     feature, sep, value = str(text).partition("=")
-    allowed = ", ".join(f"{f}={'|'.join(values)}" for f, (values, *_) in KINDS.items())
     if not sep or feature not in KINDS or value not in KINDS[feature][0]:
-        raise UsageError(f"unknown constraint {text!r}; allowed: none, {allowed}")
+        raise UsageError(f"unknown constraint {text!r}; allowed: none, {_allowed()}")
     window = KINDS[feature][1] if window is None else int(window)
     if window < 1:
         raise UsageError(f"constraint window must be >= 1 step, got {window}")
     return Constraint(feature, value, window)
 
 
+def parse_constraints(text, window: int | None = None) -> tuple[Constraint, ...]:
+    """`none` -> (); `gripper=open` -> (Constraint,); `[height=high,speed=low]` (or `height=high,speed=low`, or a
+    list) -> one Constraint per feature, in KINDS order (the canonical order: `[speed=low,height=high]` is the same
+    run). `window` applies to each. An unknown constraint in the list, two on one feature, an empty list or `none`
+    inside a list is a one-line UsageError naming the value and what is allowed."""
+    if text is None:
+        return ()
+    if isinstance(text, str):
+        body = text.strip()
+        listed = body.startswith("[") or body.endswith("]")
+        if listed and not (body.startswith("[") and body.endswith("]")):
+            raise UsageError(f"constraint={text!r}: unbalanced brackets; write constraint=[height=high,speed=low]")
+        body = body[1:-1] if listed else body
+        if not listed and body in ("", "none"):
+            return ()
+        pieces = [piece.strip() for piece in body.split(",")] if body.strip() else []
+    else:  # a list from a config file
+        pieces, listed = [str(piece).strip() for piece in text], True
+    if not pieces:
+        raise UsageError(f"constraint={text!r} names no constraint; give one or more of {_allowed()} "
+                         f"(e.g. constraint=[height=high,speed=low]), or constraint=none")
+    if len(pieces) == 1 and not listed:
+        return (parse_constraint(pieces[0], window),)
+    found: dict[str, Constraint] = {}
+    for piece in pieces:
+        if piece in ("", "none"):
+            raise UsageError(f"constraint={text!r}: {piece or 'an empty entry'!r} cannot be in a list of "
+                             f"constraints; allowed in a list: {_allowed()}")
+        feature, _, value = piece.partition("=")
+        if feature not in KINDS or value not in KINDS[feature][0]:
+            raise UsageError(f"unknown constraint {piece!r} in constraint={text}; allowed: {_allowed()}")
+        constraint = parse_constraint(piece, window)
+        if constraint.feature in found:
+            raise UsageError(f"constraint={text}: two constraints on {constraint.feature} "
+                             f"({found[constraint.feature].name}, {constraint.name}); one per feature")
+        found[constraint.feature] = constraint
+    return tuple(found[f] for f in KINDS if f in found)
+
+
+def as_constraints(constraint) -> tuple[Constraint, ...]:
+    """A Constraint, None or a sequence of them, as a tuple."""
+    if constraint is None:
+        return ()
+    return (constraint,) if isinstance(constraint, Constraint) else tuple(constraint)
+
+
+def constraint_name(constraints) -> str:
+    """What tables and summaries call the run's constraints: `height=high,speed=low`, `gripper=open`, or `none`."""
+    return ",".join(c.name for c in as_constraints(constraints)) or "none"
+
+
+def held_by_default(constraints) -> tuple[str, ...]:
+    """The action read-outs box=action holds by default: those every constraint leaves alone (the intersection of
+    their KINDS hold tuples), less the features any of them steers."""
+    constraints = as_constraints(constraints)
+    if not constraints:
+        return ()
+    steered = {c.action_feature for c in constraints}
+    return tuple(f for f in constraints[0].holds if all(f in c.holds for c in constraints) and f not in steered)
+
+
 START_GRIPPER = ("auto", "open", "closed")
 FAVOURED_METHODS = ("none", "prompt")  # the paper's baselines, which get the gripper constraint's state to start from
 
 
-def start_gripper(setting: str, constraint: Constraint | None, method: str) -> str:
+def start_gripper(setting: str, constraint, method: str) -> str:
     """The gripper state an episode settles in: `open` or `closed` as asked, or for `auto` the paper's protocol
-    (§V-B): under a gripper constraint, no intervention and prompting start in the wanted state ("a favourable
-    initial condition"); everything else starts open, as LIBERO does."""
+    (§V-B): under a gripper constraint (alone or among others), no intervention and prompting start in the wanted
+    state ("a favourable initial condition"); everything else starts open, as LIBERO does."""
     if setting != "auto":
         return setting
-    favoured = constraint is not None and constraint.feature == "gripper" and method in FAVOURED_METHODS
-    return constraint.value if favoured else "open"
+    gripper = [c for c in as_constraints(constraint) if c.feature == "gripper"]
+    return gripper[0].value if gripper and method in FAVOURED_METHODS else "open"
 
 
 def reference(constraint: Constraint, start_z: float, speed_threshold: float) -> float:
@@ -173,26 +239,78 @@ def filter_action(constraint: Constraint, action, z: float, level: float, metres
     return out
 
 
-def filter_hook(constraint: Constraint, speed_threshold: float, metres_per_unit: float,
+def filter_actions(constraints, action, z: float, start_z: float, speed_threshold: float, metres_per_unit: float,
+                   decay: float = BARRIER_DECAY, margin: float = 0.0):
+    """`filter_action` for several constraints at once. The gripper command is forced apart from the translation.
+    Height and speed both bound the translation: the result is the one nearest the action (L2) that keeps dz in the
+    barrier and the norm in the speed bound, among the speed filter alone, the height filter alone, and dz clipped
+    with (dx, dy) scaled to the speed bound (for speed=low, the exact projection onto the feasible set). When no
+    translation satisfies both (speed=low below the rise the barrier asks for), the height barrier wins: dz clipped,
+    (dx, dy) as near the speed bound as they can get (zero)."""
+    import numpy as np
+
+    constraints = as_constraints(constraints)
+    by_feature = {c.feature: c for c in constraints}
+    if len(constraints) == 1 or not {"height", "speed"} <= set(by_feature):
+        out = np.array(action, dtype=np.float64)
+        for c in constraints:
+            out = filter_action(c, out, z, reference(c, start_z, speed_threshold), metres_per_unit, decay, margin)
+        return out
+    height, speed = by_feature["height"], by_feature["speed"]
+    out = filter_action(by_feature["gripper"], action, z, 0.0, metres_per_unit) if "gripper" in by_feature \
+        else np.array(action, dtype=np.float64)
+    (lo, hi), (slow, fast) = (action_bound(c, z, reference(c, start_z, speed_threshold), metres_per_unit, decay,
+                                           margin=margin) for c in (height, speed))
+    v = out[:3].copy()
+
+    def along(w):  # the speed filter: scaled along its own direction
+        norm = float(np.linalg.norm(w))
+        wanted = float(np.clip(norm, slow, fast))
+        return w * (wanted / norm) if norm > 1e-9 and wanted != norm else w
+
+    def level(w):  # dz kept, (dx, dy) scaled so the norm reaches the speed bound (zero where it cannot)
+        wanted = float(np.clip(np.linalg.norm(w), slow, fast))
+        flat, room = float(np.linalg.norm(w[:2])), wanted ** 2 - w[2] ** 2
+        out = w.copy()
+        if room < 0:
+            out[:2] = 0.0
+        elif flat > 1e-9:
+            out[:2] *= np.sqrt(room) / flat
+        return out
+
+    def feasible(w):
+        norm = float(np.linalg.norm(w))
+        return lo - 1e-9 <= w[2] <= hi + 1e-9 and slow - 1e-9 <= norm <= fast + 1e-9
+
+    clipped = v.copy()
+    clipped[2] = float(np.clip(v[2], lo, hi))
+    candidates = [w for w in (along(v), clipped, level(clipped), along(clipped)) if feasible(w)]
+    out[:3] = min(candidates, key=lambda w: float(np.linalg.norm(w - v))) if candidates else level(clipped)
+    return out
+
+
+def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
                 decay: float = BARRIER_DECAY, margin: float = 0.0):
-    """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window; the
-    start height is the hand's z at the first policy step."""
+    """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window (several
+    constraints: each over its own window, together where windows overlap, `filter_actions`); the start height is
+    the hand's z at the first policy step."""
+    constraints = as_constraints(constraint)
     start = {}
 
     def hook(t: int, obs, action):
         z = float(obs.state[2])
         start.setdefault("z", z)
-        if t >= constraint.window:
+        active = [c for c in constraints if t < c.window]
+        if not active:
             return action
-        return filter_action(constraint, action, z, reference(constraint, start["z"], speed_threshold),
-                             metres_per_unit, decay, margin)
+        return filter_actions(active, action, z, start["z"], speed_threshold, metres_per_unit, decay, margin)
 
     return hook
 
 
-def prompted(instruction: str, constraint: Constraint) -> str:
-    """The prompting baseline: the constraint said in words after the task."""
-    return f"{instruction} and {PROMPTS[(constraint.feature, constraint.value)]}"
+def prompted(instruction: str, constraint) -> str:
+    """The prompting baseline: the constraint said in words after the task (several: each, joined by 'and')."""
+    return " and ".join([instruction, *(PROMPTS[(c.feature, c.value)] for c in as_constraints(constraint))])
 
 
 def judge_steps(constraint: Constraint, steps, start_z: float, speed_threshold: float):
@@ -215,3 +333,33 @@ def judge_steps(constraint: Constraint, steps, start_z: float, speed_threshold: 
     )
     steps.loc[~inside, "satisfied"] = pd.NA
     return steps, float(ok[inside].mean()) if inside.any() else float("nan")
+
+
+JUDGED = ("in_window", "constraint_value", "constraint_level", "satisfied")  # the columns judge_steps adds
+
+
+def judge_all(constraints, steps, start_z: float, speed_threshold: float):
+    """`judge_steps` for one constraint or several. Several: each constraint judged in its own window, its columns
+    suffixed by its feature (`satisfied_height`, ...); `in_window` is then any constraint's window and `satisfied`
+    that every constraint whose window covers the step is satisfied. Returns the table, the episode's satisfaction
+    (the share of window steps satisfied) and {feature: that constraint's own satisfaction}."""
+    import numpy as np
+    import pandas as pd
+
+    constraints = as_constraints(constraints)
+    if len(constraints) == 1:
+        steps, satisfaction = judge_steps(constraints[0], steps, start_z, speed_threshold)
+        return steps, satisfaction, {constraints[0].feature: satisfaction}
+    columns, own = {}, {}
+    covered = np.zeros(len(steps), dtype=bool)
+    every = np.ones(len(steps), dtype=bool)
+    for c in constraints:
+        judged, own[c.feature] = judge_steps(c, steps, start_z, speed_threshold)
+        columns.update({f"{column}_{c.feature}": judged[column] for column in JUDGED})
+        inside = judged["in_window"].to_numpy(dtype=bool)
+        covered |= inside
+        every &= ~inside | judged["satisfied"].fillna(False).to_numpy(dtype=bool)
+    satisfied = pd.array(np.where(covered, every, False), dtype="boolean")
+    satisfied[~covered] = pd.NA
+    steps = steps.assign(in_window=covered, satisfied=satisfied, **columns)
+    return steps, float(every[covered].mean()) if covered.any() else float("nan"), own
