@@ -183,8 +183,33 @@ def test_plot_two_runs_side_by_side(probe_runs, tmp_path):
     assert (outs[0] / "figures" / "controllability.png").stat().st_size > 0
 
 
+def test_choose_into_takes_each_features_probes_from_the_run_that_moves_it_most(probe_runs, tmp_path):
+    demos, (observe, steer) = probe_runs
+    runs = [tmp_path / "observe", tmp_path / "steer"]
+    for source, run in zip((observe, steer), runs):
+        shutil.copytree(source, run)
+        (run / "controllability.parquet").unlink(missing_ok=True)
+    chosen = tmp_path / "chosen"
+    assert measure(demos, f"[{runs[0]},{runs[1]}]", tmp_path / "maps", f"choose_into={chosen}") == chosen
+    choice = pd.read_parquet(chosen / "choice.parquet")
+    assert sorted(choice["feature"].unique()) == sorted(FEATURES) and choice.groupby("feature")["chosen"].sum().eq(1).all()
+    metrics = pd.read_parquet(chosen / METRICS_NAME)
+    for _, win in choice[choice["chosen"]].iterrows():
+        best = choice[choice["feature"] == win["feature"]]["score"].max()
+        assert win["score"] == best
+        rows = metrics[metrics["feature"] == win["feature"]]
+        source = pd.read_parquet(f"{win['run']}/{METRICS_NAME}")
+        assert rows["probe"].tolist() == source[source["feature"] == win["feature"]]["probe"].tolist()
+        for probe in rows["probe"]:  # the winner's own probe files, bit for bit
+            assert (chosen / probe).read_bytes() == (tmp_path / win["run"] / probe).read_bytes()
+    # its controllability rows are current for the assembled metrics: a rollout takes its layers from them
+    from vlactl.steering.controllability import controllability_rows
+    assert all(controllability_rows(chosen, f) is not None for f in FEATURES)
+
+
 @pytest.mark.parametrize("extra, message", [
     (["probes=null"], "needs|which probes"),
+    (["choose_into=/tmp/x"], "several probe runs"),
     (["targets=[1]"], "two or more different"),
     (["targets=[0,1]"], "non-zero"),
     (["features=[dyaw]"], "no probes of feature 'dyaw'"),

@@ -1,12 +1,14 @@
 """`vlactl controllability`: where a push reaches the output. For every steerable layer (and every group of them:
 `backbone`, `expert`) x feature of a probe run, the minimal controller sets the probe's reading to its unsteered value
 plus each target delta (a relative box zmin = zmax = delta, `Steerer`), over N dataset frames, and the model's own
-predicted action feature is compared with the unsteered prediction under the same noise.
+predicted action feature is compared with the unsteered prediction under the same noise. Targets are in standard
+deviations of the probe's reading over those frames, so probes of different families (vlactl.steering.directions)
+and penalties compare: a gain is the change of the predicted feature per standard deviation of the reading.
 
 The predicted feature is the mean over the first `replan_every` actions of the chunk (what a rollout executes) of the
 feature's action column: itself for an action feature, its delta for a state feature (z -> dz), and for speed the
 norm of the predicted (dx, dy, dz). Per row: `gain`, the least-squares slope of its change on the reading's change
-(in the probe's units, the logit for a logistic probe), `r2` of that line, and for binary features `cross_share`, the
+(per standard deviation of the reading), `r2` of that line, and for binary features `cross_share`, the
 share of predictions not yet on the asked side (delta > 0: close) that the push moves across 0 to it.
 
 Writes `controllability.parquet` (one row per layer or group and feature) and `points.parquet` (one per frame, target
@@ -103,7 +105,13 @@ def default_output(cfg: DictConfig) -> Path:
 
 
 def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
-    """Measure (or resume measuring) and return the run folder; also writes the table into the probe run."""
+    """Measure (or resume measuring) and return the run folder; also writes the table into the probe run. With a list
+    of probe runs, each is measured in turn, and with `choose_into` the best run's probes of every feature are
+    assembled there (vlactl.steering.choose); returns that folder."""
+    if isinstance(cfg.probes, (list, ListConfig)):
+        return _measure_candidates(cfg, load_policy)
+    if cfg.choose_into is not None:
+        raise UsageError("choose_into= picks among several probe runs: give probes=[run_a,run_b,...]")
     _check(cfg)
     run = stage_output(cfg.probes, METRICS_NAME, "probe run", "vlactl train-probes")
     table = pd.read_parquet(run / METRICS_NAME)
@@ -131,6 +139,7 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
     targets = [float(t) for t in cfg.targets]
     digest = metrics_digest(run)
     key |= {"metrics": digest, "units": units, "targets": targets, "replan_every": vla.replan_every}
+    scale = _reading_std(vla, frames, rows, probes, pooling, int(cfg.batch_size))
 
     def work(index, bar):
         obs = frame_batch(frames, index)
@@ -138,7 +147,8 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
         points = []
         for name, group, feature in units:
             for target in targets:
-                constraints = [Constraint(probes[layer, feature], target, target, relative=True)
+                constraints = [Constraint(probes[layer, feature], target * scale[layer, feature],
+                                          target * scale[layer, feature], relative=True)
                                for layer in members[name, feature]]
                 with Steerer(vla, constraints, pooling=pooling) as steer:
                     chunk = predict_chunk(vla, obs, steer)
@@ -162,6 +172,39 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
     save_config(cfg, out)
     print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows) and {run / CONTROLLABILITY_NAME}", file=sys.stderr)
     return out
+
+
+def _measure_candidates(cfg: DictConfig, load_policy=None) -> Path:
+    from vlactl.steering.choose import choose_probes
+
+    runs = [str(run) for run in cfg.probes]
+    if len(runs) < 2 or len(set(runs)) < len(runs):
+        raise UsageError(f"probes= as a list needs two or more different probe runs, got {runs}")
+    out = None
+    for run in runs:
+        one = OmegaConf.merge(cfg, {"probes": run, "choose_into": None,
+                                    "output_dir": f"{cfg.output_dir}/{Path(run).name}" if cfg.output_dir else None})
+        out = run_controllability(one, load_policy)
+    if cfg.choose_into is None:
+        return out
+    chosen = resolve_path(cfg.choose_into)
+    choose_probes([stage_output(run, METRICS_NAME, "probe run", "vlactl train-probes") for run in runs], chosen)
+    return chosen
+
+
+def _reading_std(vla, frames, rows: np.ndarray, probes: dict, pooling: str, batch_size: int) -> dict:
+    """(layer, feature) -> the standard deviation of the probe's unsteered reading over the frames (every forward
+    through its layer): the unit the targets are given in, so that probes of any family (a ridge probe shrunk by its
+    penalty reads in a fraction of the feature's units) are pushed by the same share of their natural spread."""
+    readings: dict[tuple[str, str], list[float]] = {}
+    for feature in dict.fromkeys(f for _, f in probes):
+        watch = [Constraint(probe) for (_, f), probe in probes.items() if f == feature]
+        for start in range(0, len(rows), batch_size):
+            with Steerer(vla, watch, pooling=pooling) as steer:
+                predict_chunk(vla, frame_batch(frames, rows[start : start + batch_size]), steer)
+            for entry in steer.log:
+                readings.setdefault((entry["layer"], feature), []).append(entry["before"])
+    return {unit: float(np.std(values)) or 1.0 for unit, values in readings.items()}
 
 
 def _merged(path: Path, result: pd.DataFrame) -> pd.DataFrame:
