@@ -82,17 +82,23 @@ policies: install
 
 # The probes that ship beside each model in data/probes/<model>/ (found by `vlactl rollout --constraint ...` by
 # default): activations on PROBE_DEMOS, the observability probes (observe/, every feature, the best ridge penalty) and
-# the steering probes (steer/: the action read-outs the constraints push, strongly regularised, whose direction moves
-# the actions; docs/steering.md), with the steering probes' controllability table. About 10 min a model on 2 cores.
+# the steering probes (steer/: the action read-outs the constraints push): one candidate run per STEER_FAMILIES
+# (fit: ridge / logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale),
+# each measured by `vlactl controllability`, and per feature the run whose push moves the predicted action most
+# (docs/steering.md). About 15 min a model on 2 cores.
 PROBE_DEMOS ?= data/demos/libero_spatial_robust
 STEER_FEATURES ?= [dx,dy,dz,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
+STEER_FAMILIES ?= fit meandiff covariance
+comma := ,
 define build_probes
 	$(BIN)/vlactl collect model=$(1) dataset=$(PROBE_DEMOS) every=4 output_dir=outputs/probes-build/$(1)/activations
 	$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations output_dir=outputs/probes-build/$(1)/observe
-	$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations output_dir=outputs/probes-build/$(1)/steer \
-	  features=$(STEER_FEATURES) $(STEER_PROBE_ARGS)
-	$(BIN)/vlactl controllability model=$(1) probes=outputs/probes-build/$(1)/steer dataset=$(PROBE_DEMOS)
+	$(foreach f,$(STEER_FAMILIES),$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations \
+	  output_dir=outputs/probes-build/$(1)/steer-$(f) features=$(STEER_FEATURES) family=$(f) $(STEER_PROBE_ARGS)
+	)
+	$(BIN)/vlactl controllability model=$(1) dataset=$(PROBE_DEMOS) choose_into=outputs/probes-build/$(1)/steer \
+	  probes=[$(subst $(eval) ,$(comma),$(foreach f,$(STEER_FAMILIES),outputs/probes-build/$(1)/steer-$(f)))]
 	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer; do \
 	  mkdir -p data/probes/$(1).new/$$f && cp -r outputs/probes-build/$(1)/$$f/probes \
 	  outputs/probes-build/$(1)/$$f/*.parquet outputs/probes-build/$(1)/$$f/*.json outputs/probes-build/$(1)/$$f/config.yaml \

@@ -18,6 +18,8 @@ import torch
 from vlactl.steering.logistic import fit_logistic
 
 FAMILIES = ("fit", "meandiff", "covariance")  # fit: every weight fitted (ridge / logistic, the default)
+SCALE_L2 = 1.0  # the one-dimensional logistic scale's penalty (scikit-learn's default): the direction is the steering
+                # choice, its scale only calibrates the logit, so train-probes' logistic_l2 does not apply
 
 
 def direction(z: torch.Tensor, y: torch.Tensor, binary: bool, family: str) -> torch.Tensor:
@@ -33,7 +35,7 @@ def direction(z: torch.Tensor, y: torch.Tensor, binary: bool, family: str) -> to
 
 
 def scaled_directions(
-    z: torch.Tensor, labels: torch.Tensor, binary: list[bool], family: str, l2: float, steps: int
+    z: torch.Tensor, labels: torch.Tensor, binary: list[bool], family: str, steps: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """z [L, n, p], labels [n, F] (0/1 for binary features) -> weights [L, p, F] and intercepts [L, F] (float64) of
     readings a (v.z) + c along each feature's `direction` v."""
@@ -46,7 +48,7 @@ def scaled_directions(
         proj = torch.einsum("lnp,lp->ln", z, v.to(z.dtype)).double()  # [L, n]
         if is_binary:
             scale = proj.std(1, keepdim=True).clamp_min(1e-12)
-            a, c = fit_logistic((proj / scale)[..., None].float(), y, l2, steps)
+            a, c = fit_logistic((proj / scale)[..., None].float(), y, SCALE_L2, steps)
             a = a[:, 0] / scale[:, 0]
         else:
             centred = proj - proj.mean(1, keepdim=True)

@@ -185,8 +185,7 @@ def _fit_layers(
     lam = torch.full((n_layers, n_feat), float(settings.logistic_l2), dtype=torch.float64, device=dev)
     cv_r2 = torch.full((n_layers, n_feat), float("nan"), dtype=torch.float64, device=dev)
     if settings.family != "fit":
-        w, b = scaled_directions(z, labels, [k == LOGISTIC for k in kinds], settings.family, settings.logistic_l2,
-                                 settings.newton_steps)
+        w, b = scaled_directions(z, labels, [k == LOGISTIC for k in kinds], settings.family, settings.newton_steps)
         lam.fill_(float("nan"))
     reg = [i for i, k in enumerate(kinds) if k == REGRESSION] if settings.family == "fit" else []
     gram = None
