@@ -81,24 +81,28 @@ policies: install
 	$(MAKE) probes
 
 # The probes that ship beside each model in data/probes/<model>/ (found by `vlactl rollout --constraint ...` by
-# default): activations on PROBE_DEMOS, the observability probes (observe/, every feature, the best ridge penalty) and
-# the steering probes (steer/: the action read-outs the constraints push): one candidate run per STEER_FAMILIES
-# (fit: ridge / logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale),
-# each measured by `vlactl controllability`, and per feature the run whose push moves the predicted action most
-# (docs/steering.md). About 15 min a model on 2 cores.
+# default), made by fit_probes (model and its options, demonstrations, folder, train-probes options): activations
+# (every 4th frame), the observability probes (observe/: every feature, the best ridge penalty) and the steering
+# probes (steer/: the action read-outs the constraints push): one candidate run per STEER_FAMILIES (fit: ridge /
+# logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale), each measured by
+# `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md).
+# About 15 min a model on 2 cores.
 PROBE_DEMOS ?= data/demos/libero_spatial_robust
 STEER_FEATURES ?= [dx,dy,dz,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
 STEER_FAMILIES ?= fit meandiff covariance
 comma := ,
-define build_probes
-	$(BIN)/vlactl collect model=$(1) dataset=$(PROBE_DEMOS) every=4 output_dir=outputs/probes-build/$(1)/activations
-	$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations output_dir=outputs/probes-build/$(1)/observe
-	$(foreach f,$(STEER_FAMILIES),$(BIN)/vlactl train-probes activations=outputs/probes-build/$(1)/activations \
-	  output_dir=outputs/probes-build/$(1)/steer-$(f) features=$(STEER_FEATURES) family=$(f) $(STEER_PROBE_ARGS)
+define fit_probes
+	$(BIN)/vlactl collect model=$(1) dataset=$(2) every=4 output_dir=$(3)/activations
+	$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/observe $(4)
+	$(foreach f,$(STEER_FAMILIES),$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/steer-$(f) \
+	  features=$(STEER_FEATURES) family=$(f) $(STEER_PROBE_ARGS) $(4)
 	)
-	$(BIN)/vlactl controllability model=$(1) dataset=$(PROBE_DEMOS) choose_into=outputs/probes-build/$(1)/steer \
-	  probes=[$(subst $(eval) ,$(comma),$(foreach f,$(STEER_FAMILIES),outputs/probes-build/$(1)/steer-$(f)))]
+	$(BIN)/vlactl controllability model=$(1) dataset=$(2) choose_into=$(3)/steer \
+	  probes=[$(subst $(eval) ,$(comma),$(foreach f,$(STEER_FAMILIES),$(3)/steer-$(f)))]
+endef
+define build_probes
+	$(call fit_probes,$(1),$(PROBE_DEMOS),outputs/probes-build/$(1))
 	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer; do \
 	  mkdir -p data/probes/$(1).new/$$f && cp -r outputs/probes-build/$(1)/$$f/probes \
 	  outputs/probes-build/$(1)/$$f/*.parquet outputs/probes-build/$(1)/$$f/*.json outputs/probes-build/$(1)/$$f/config.yaml \
@@ -108,44 +112,34 @@ endef
 probes: install
 	$(foreach m,$(POLICIES),$(call build_probes,$(m)))
 
-# The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations, probes and
-# Fig. 1, sweep and Fig. 2, readings and Fig. 3, rollouts (unconstrained, then every constraint x method) and
-# Figs. 4-8 with summary.md. Every stage resumes when re-run; any stage can be re-run alone from the one before.
+# The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations and probes
+# (fit_probes: observe/ and the chosen steering probes steer/) and Fig. 1, sweep and Fig. 2, readings and Fig. 3,
+# rollouts (unconstrained, then every constraint x method: control bounds the action the policy is about to take with
+# the steering probes, alpha and meandiff push along them, filter is the action-space oracle) and Figs. 4-8 with
+# summary.md. Every stage resumes when re-run; any stage can be re-run alone from the one before.
 # method=none acts as the unconstrained policy does, so its runs judge the unconstrained run's episodes (judge_from=),
 # except under gripper=closed, where the baselines start with the gripper closed (the paper's favourable start).
 PAPER_MODEL ?= hybrid
 PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
 PAPER_EPISODES ?= 10
+PAPER_DEMOS ?= data/demos/libero_spatial
 PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
-PAPER_METHODS ?= none prompt control alpha meandiff
+PAPER_METHODS ?= none prompt control alpha meandiff filter
 PAPER_ARGS ?=
-# The controller steers the gripper with probes of its own: strongly regularised, at every action-expert layer
-# (docs/steering.md: the observability probes' minimum-norm push moves no action). Closing needs the logit pushed
-# well past 0 (margin 5); opening is what the policy does anyway, and the same margin there costs the task
-# (success 15% against 75% at margin 0, README), so gripper=open keeps the paper's box, p < 0.5.
-PAPER_STEER_PROBES ?= features=[gripper_action] logistic_l2=1e4
-PAPER_GRIPPER_CONTROL ?= probes=$(PAPER_DIR)/probes_steer layers=expert
-PAPER_CLOSED_MARGIN ?= 5
-PAPER_OPEN_MARGIN ?= 0
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
-PAPER_PROBE_ARGS ?=  # train-probes options for both probe sets, e.g. device=cuda
+PAPER_PROBE_ARGS ?=  # train-probes options for every probe set, e.g. device=cuda
 paper:
-	$(BIN)/vlactl collect model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) every=4 output_dir=$(PAPER_DIR)/activations
-	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes $(PAPER_PROBE_ARGS)
-	$(BIN)/vlactl plot probes run_dir=$(PAPER_DIR)/probes
-	$(BIN)/vlactl train-probes activations=$(PAPER_DIR)/activations output_dir=$(PAPER_DIR)/probes_steer \
-	  $(PAPER_STEER_PROBES) $(PAPER_PROBE_ARGS)
-	$(BIN)/vlactl sweep model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes output_dir=$(PAPER_DIR)/sweep
+	$(call fit_probes,$(PAPER_MODEL) $(PAPER_MODEL_ARGS),$(PAPER_DEMOS),$(PAPER_DIR),$(PAPER_PROBE_ARGS))
+	$(BIN)/vlactl plot probes run_dir=$(PAPER_DIR)/observe
+	$(BIN)/vlactl sweep model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/observe output_dir=$(PAPER_DIR)/sweep
 	$(BIN)/vlactl plot sweep run_dir=$(PAPER_DIR)/sweep
-	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/probes
+	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/observe
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
 	  judge=$$([ $$m = none ] && [ $$c != gripper=closed ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
-	  steer=$$(case $$c/$$m in gripper=closed/control) echo '$(PAPER_GRIPPER_CONTROL) logit_margin=$(PAPER_CLOSED_MARGIN)';; \
-	    gripper=open/control) echo '$(PAPER_GRIPPER_CONTROL) logit_margin=$(PAPER_OPEN_MARGIN)';; esac); \
-	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/probes \
-	    activations=$(PAPER_DIR)/activations episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts \
-	    $$judge $$steer $(PAPER_ARGS) || exit 1; done; done
+	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$$m probes=$(PAPER_DIR)/steer \
+	    activations=$(PAPER_DIR)/activations demos=$(PAPER_DEMOS) episodes_per_task=$(PAPER_EPISODES) \
+	    output_root=$(PAPER_DIR)/rollouts $$judge $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 
 test:
