@@ -22,7 +22,7 @@ def probes(tmp_path_factory):
     result = runner.invoke(app, ["collect", "model=random", f"dataset={demos}", f"output_dir={tmp / 'acts'}", *common])
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["train-probes", f"activations={tmp / 'acts'}", f"output_dir={tmp / 'run'}",
-                                 "features=[gripper_action,dx,dz]", "cv_folds=2", "robustness_directions=2"])
+                                 "features=[gripper_action,dx,dz,speed]", "cv_folds=2", "robustness_directions=2"])
     assert result.exit_code == 0, result.output
     return tmp / "run"
 
@@ -173,3 +173,85 @@ def test_action_boxes_push_only_when_the_prediction_breaks_the_bound(probes, tmp
     assert (steps["passes"][inside] == 0).all() and (steps["passes"][~inside] >= 1).all()
     if constraint == "height=high":  # at the start height the barrier asks for no descent at all
         assert steps["bound_lo"].iloc[0] == pytest.approx(0.0)
+
+
+# --- several constraints at once ----------------------------------------------------------------------------------
+
+BOTH = ["constraint=[speed=low,height=high]", "metres_per_unit=0.012", "speed_threshold=0.02", "height_margin=0"]
+
+
+def test_several_constraints_under_control_are_each_bounded_and_named(probes, tmp_path):
+    from omegaconf import OmegaConf
+
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", *BOTH)
+    out = tmp_path / "random_libero_spatial_height-high_speed-low_control"  # every constraint named, KINDS order
+    assert OmegaConf.load(out / "config.yaml").constraint == "height=high,speed=low"  # saved in one canonical form
+    episodes, steps = pd.read_parquet(out / "episodes.parquet"), pd.read_parquet(out / "steps.parquet")
+    assert episodes["constraint"].tolist() == ["height=high,speed=low"]
+    for column in ("satisfaction", "satisfaction_height", "satisfaction_speed"):
+        assert 0 <= episodes[column].iloc[0] <= 1
+    window = steps[steps["in_window"]]
+    every = window["satisfied_height"].fillna(True) & window["satisfied_speed"].fillna(True)
+    assert episodes["satisfaction"].iloc[0] == pytest.approx(float(every.mean()))
+    assert summary["constraint"] == "height=high,speed=low" and summary["held"] == ["gripper_action"]
+    assert set(summary["constraints"]) == {"height=high", "speed=low"}
+    assert summary["constraints"]["speed=low"]["satisfaction"] == pytest.approx(episodes["satisfaction_speed"].iloc[0])
+    bounded = steps.dropna(subset=["bound_lo_height"])
+    assert bounded["t"].tolist() == [0, 2] and bounded["bound_lo_speed"].notna().all()  # each re-plan, both bounds
+    inside = pd.Series(True, index=bounded.index)
+    for feature in ("height", "speed"):
+        q = bounded[f"action_before_{feature}"]
+        inside &= (q >= bounded[f"bound_lo_{feature}"]) & (q <= bounded[f"bound_hi_{feature}"])
+    assert (bounded["passes"][inside] == 0).all() and (bounded["passes"][~inside] >= 1).all()
+    assert "action_before" not in steps and "constraint_value" not in steps  # no column that names one of them only
+    again = rollout(tmp_path, "method=control", f"probes={probes}", *BOTH[1:], "constraint=height=high,speed=low")
+    assert again["episodes"] == 1  # the same run in another spelling: resumed, not refused
+
+
+def test_several_constraints_under_the_filter_keep_both_bounds_where_they_can(probes, tmp_path):
+    from vlactl.rollout.constraints import action_bound, parse_constraints
+
+    summary = rollout(tmp_path, "method=filter", *BOTH, "window=null")
+    steps = pd.read_parquet(tmp_path / "random_libero_spatial_height-high_speed-low_filter" / "steps.parquet")
+    high, low = parse_constraints("height=high,speed=low")
+    feasible = 0
+    for row in steps.itertuples():
+        lo = action_bound(high, row.z, steps["z"].iloc[0], 0.012)[0]
+        fast = action_bound(low, row.z, 0.02, 0.012)[1]
+        if lo <= fast:  # a rise the speed bound allows
+            feasible += 1
+            assert row.dz >= lo - 1e-9 and np.linalg.norm([row.dx, row.dy, row.dz]) <= fast + 1e-9
+    assert feasible >= 1
+    assert set(summary["constraints"]) == {"height=high", "speed=low"} and summary["method"] == "filter"
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["method=alpha"], "method=alpha takes one constraint, not 2"),
+    (["method=meandiff"], "method=meandiff takes one constraint"),
+    (["method=control", "box=state"], "box=state takes one constraint"),
+    (["method=control", "layers=[expert.0]", "hold=[x,y,z,dx,dy]"], "at most 4 features can be held beside 2 "
+                                                                    "constraints on one layer"),
+    (["method=control", "hold=[speed]"], "unknown hold feature 'speed'"),
+])
+def test_several_constraints_where_they_cannot_go_are_usage_errors(probes, tmp_path, extra, message):
+    with pytest.raises(UsageError, match=message):
+        rollout(tmp_path, f"probes={probes}", *BOTH, *extra)
+    assert not any(tmp_path.iterdir())  # no run folder
+
+
+@pytest.mark.parametrize("constraint, message", [
+    ("[height=high,speed=slow]", "unknown constraint 'speed=slow' in constraint=[height=high,speed=slow]; allowed: "),
+    ("[height=low,height=high]", "two constraints on height (height=low, height=high); one per feature"),
+    ("[]", "names no constraint"),
+])
+def test_bad_constraint_lists_on_the_command_line_are_one_line(tmp_path, constraint, message):
+    import subprocess
+    import sys
+
+    for multirun in ([], ["-m"]):
+        res = subprocess.run([sys.executable, "-m", "vlactl.cli", "rollout", *multirun, "model=random",
+                              f"constraint={constraint}", f"output_root={tmp_path}"],
+                             capture_output=True, text=True, timeout=120)
+        lines = [line for line in res.stderr.splitlines() if line.strip() and "robosuite" not in line]
+        assert res.returncode == 2 and lines == [f"error: {lines[0][7:]}"] and message in lines[0], res.stderr
+        assert not any(tmp_path.iterdir())

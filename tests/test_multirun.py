@@ -29,6 +29,14 @@ def test_sweeps_expand_to_the_product_and_lists_stay_whole(tmp_path):
            rollout_config)
     assert runs == ["layers-backbone.1", "layers-expert.0"]
     assert list(tmp_path.iterdir()) == [tmp_path / "multirun.yaml"]  # no .hydra/ folders, no job logs
+    runs.clear()  # a bracketed list of constraints is one value; beside another value, a sweep of two
+    launch("rollout", ["constraint=[speed=low,height=high]", "seed=0,1", sweep_dir], lambda items, tag: runs.append(
+        (rollout_config(items).constraint, tag)), rollout_config, named_by=("constraint",))
+    assert runs == [("height=high,speed=low", "seed-0"), ("height=high,speed=low", "seed-1")]
+    runs.clear()
+    launch("rollout", ["constraint=[height=high,speed=low],gripper=open", sweep_dir], lambda items, tag: runs.append(
+        rollout_config(items).constraint), rollout_config, named_by=("constraint",))
+    assert runs == ["height=high,speed=low", "gripper=open"]
 
 
 def test_bad_sweeps_and_launchers_are_usage_errors(tmp_path):
@@ -36,6 +44,8 @@ def test_bad_sweeps_and_launchers_are_usage_errors(tmp_path):
         launch("rollout", ["alpha=2,,4"], print, rollout_config)
     with pytest.raises(UsageError, match="alpha="):  # checked before anything runs
         launch("rollout", ["alpha=2,abc"], print, rollout_config)
+    with pytest.raises(UsageError, match="two constraints on height"):  # a fixed value too
+        launch("rollout", ["constraint=[height=low,height=high]", "seed=0,1"], print, rollout_config)
     with pytest.raises(UsageError, match="bad multirun setting.*hydra/launcher=nope"):
         launch("rollout", ["seed=0,1", "hydra/launcher=nope", f"hydra.sweep.dir={tmp_path}"], print, rollout_config)
     result = CliRunner().invoke(app, ["rollout", *BASE, "hydra/launcher=joblib"])

@@ -88,7 +88,8 @@ def rollout(
     video: Optional[bool] = typer.Option(None, "--video/--no-video", help="Save an mp4 per episode."),
     run_name: Optional[str] = typer.Option(None, "--run-name", help="Output folder under outputs/rollout/."),
     constraint: Optional[str] = typer.Option(
-        None, "--constraint", help="none, gripper=open|closed, height=low|high, speed=low|high."),
+        None, "--constraint", help="none, gripper=open|closed, height=low|high, speed=low|high, or several at "
+        "once, one per feature: [height=high,speed=low]."),
     method: Optional[str] = typer.Option(None, "--method", help="none, prompt, control (the default under a constraint), alpha, meandiff or filter."),
     probes: Optional[str] = typer.Option(None, "--probes", help="Probe run folder, for control and alpha."),
     multirun: bool = MULTIRUN,

@@ -25,11 +25,19 @@ from vlactl.io import folder_name
 
 def _quote_pieces(item: str) -> str:
     """`constraint=gripper=open,gripper=closed` -> `constraint='gripper=open','gripper=closed'` (Hydra needs
-    values holding '=' quoted)."""
+    values holding '=' quoted). A bracketed list is one value, not a sweep: `constraint=[height=high,speed=low]`
+    -> `constraint='[height=high,speed=low]'`, and `constraint=[height=high,speed=low],gripper=open` sweeps two."""
     key, _, value = item.partition("=")
     if "=" not in value or "'" in value or '"' in value:
         return item
-    return f"{key}=" + ",".join(f"'{piece}'" for piece in value.split(","))
+    pieces, depth, start = [], 0, 0
+    for i, char in enumerate(value):  # split at the commas outside brackets
+        depth += {"[": 1, "]": -1}.get(char, 0)
+        if char == "," and depth == 0:
+            pieces.append(value[start:i])
+            start = i + 1
+    pieces.append(value[start:])
+    return f"{key}=" + ",".join(f"'{piece}'" for piece in pieces)
 
 
 def is_hydra(item: str) -> bool:
@@ -69,8 +77,8 @@ def launch(stage: str, overrides: list[str], run: Callable[[list[str], str], Non
            load: Callable[[list[str]], object], named_by: tuple[str, ...] = ()) -> None:
     """Run `run(overrides, tag)` once per combination of the swept values, through Hydra's sweeper and launcher.
 
-    `tag` names the swept keys outside `named_by` (e.g. `alpha-2`), '' if none. Every swept value is first composed
-    with the fixed overrides by `load`, so a bad one is a one-line error before anything is launched."""
+    `tag` names the swept keys outside `named_by` (e.g. `alpha-2`), '' if none. The fixed overrides, and every swept
+    value with them, are first composed by `load`, so a bad one is a one-line error before anything is launched."""
     from hydra_zen import launch as hydra_launch
 
     from vlactl.config import REPO_ROOT
@@ -83,6 +91,7 @@ def launch(stage: str, overrides: list[str], run: Callable[[list[str], str], Non
         raise UsageError(f"bad multirun override in {overrides}: {str(exc).strip().splitlines()[0]}") from None
     fixed = [item for item, override in zip(items, parsed) if not override.is_sweep_override()]
     swept = [(item, override) for item, override in zip(items, parsed) if override.is_sweep_override()]
+    load(fixed)  # the fixed values alone too: a bad one is one line here, not Hydra's job error
     for _, override in swept:
         if override.is_discrete_sweep():
             for value in override.sweep_string_iterator():

@@ -9,6 +9,10 @@ on dz for height) does it predict again with the minimal push that shifts the st
 every steered layer, delta found by a secant search on the predicted quantity (the same sampling noise each pass), a
 few passes at most. With `box=state` it keeps the probe's reading of the state in a fixed box at every forward.
 
+Under several constraints (control with box=action only) each has its own bound, steering probes and window: a
+re-plan pushes only if some bound breaks, and then searches the shift of each broken constraint in turn, with the
+probes of the others held at their current shifts by relative boxes of the same multi-box QP.
+
 The box depends on the episode (the start height for `height=`), so it is set at each reset. The agent keeps, per
 step, the probe readings before and after the intervention at the prediction made on that step.
 """
@@ -18,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import Constraint, action_bound, action_quantity, box, prompted, reference
+from vlactl.rollout.constraints import Constraint, action_bound, action_quantity, as_constraints, box, prompted, reference
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -31,6 +35,8 @@ STEERING = ("control", "alpha", "meandiff")
 # steered re-predictions it took.
 READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share",
                    "action_before", "action_after", "bound_lo", "bound_hi", "passes")
+# Under several constraints, the columns of each constraint get its feature as a suffix (`bound_lo_height`).
+PER_CONSTRAINT = ("reading_before", "reading_after", "action_before", "action_after", "bound_lo", "bound_hi")
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
 FIRST_GAIN = 0.1  # the search's first reading shift per action unit of the quantity's distance to the target
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
@@ -56,20 +62,36 @@ class Steering:
     hold_tolerance: float = 0.0
 
 
+def reading_columns(constraints) -> tuple[str, ...]:
+    """The step table's reading columns: READING_COLUMNS for one constraint; for several, the push's own columns once
+    and PER_CONSTRAINT suffixed by each constraint's feature."""
+    constraints = as_constraints(constraints)
+    if len(constraints) <= 1:
+        return READING_COLUMNS
+    shared = tuple(c for c in READING_COLUMNS if c not in PER_CONSTRAINT)
+    return shared + tuple(f"{column}_{c.feature}" for c in constraints for column in PER_CONSTRAINT)
+
+
 class ConstrainedAgent(VLAAgent):
     def __init__(
-        self, vla, constraint: Constraint, steering: Steering, replan_every: int | None = None,
-        snap_gripper: bool = True,
+        self, vla, constraint, steering: Steering, replan_every: int | None = None, snap_gripper: bool = True,
     ):
+        """`constraint`: a Constraint, or several (a tuple: control with box=action, prompt; one per feature)."""
         super().__init__(vla, replan_every, snap_gripper)
-        self.constraint, self.steering = constraint, steering
+        self.constraints = as_constraints(constraint)
+        self.constraint, self.steering = self.constraints[0], steering
         self.readings: dict[int, dict] = {}
+        # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature)
+        self._probes = {c.feature: steering.probes if len(self.constraints) == 1 else
+                        tuple(p for p in steering.probes if p.feature == c.action_feature) for c in self.constraints}
 
     def reset(self, env, obs) -> None:
         super().reset(env, obs)
         if self.steering.method == "prompt":
-            self._instruction = prompted(env.instruction, self.constraint)
-        level = reference(self.constraint, float(obs.state[2]), self.steering.speed_threshold)
+            self._instruction = prompted(env.instruction, self.constraints)
+        self._levels = {c.feature: reference(c, float(obs.state[2]), self.steering.speed_threshold)
+                        for c in self.constraints}
+        level = self._levels[self.constraint.feature]
         zmin, zmax = box(self.constraint, level, self.steering.logit_margin)
         tol = self.steering.hold_tolerance
         held = [ProbeBox(p, -tol, tol, relative=True) for p in self.steering.holds]
@@ -79,7 +101,8 @@ class ConstrainedAgent(VLAAgent):
 
     def act(self, obs):
         t, self._t = self._t, self._t + 1
-        steer = self.steering.method in STEERING and t < self.constraint.window and not self._queue
+        inside = any(t < c.window for c in self.constraints)
+        steer = self.steering.method in STEERING and inside and not self._queue
         if not steer:
             return super().act(obs)
         if self.steering.method == "control" and self.steering.box == "action":
@@ -94,35 +117,73 @@ class ConstrainedAgent(VLAAgent):
         return action
 
     def _bounded_chunk(self, obs, t: int):
-        """The next actions, pushed only if they break this re-plan's action bound (box=action)."""
-        plan, constraint = self.steering, self.constraint
-        lo, hi = action_bound(constraint, float(obs.state[2]), self._level, plan.metres_per_unit, plan.barrier_decay,
-                              self.replan_every, plan.height_margin)
+        """The next actions, pushed only if they break this re-plan's action bounds (box=action): each constraint in
+        its window bounds its own quantity; the broken ones are searched in turn (KINDS order), the others' probes held
+        at their shifts so far, and once more, from its shift so far, one that a later push broke."""
+        plan, several = self.steering, len(self.constraints) > 1
+        active = [c for c in self.constraints if t < c.window]
+        bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels[c.feature], plan.metres_per_unit,
+                                          plan.barrier_decay, self.replan_every, plan.height_margin) for c in active}
         start = self.vla.sampling_state()
         actions = self.predict(obs)
         drawn = self.vla.sampling_state()
-        quantity = before = action_quantity(constraint, actions)
-        row = {"action_before": before, "bound_lo": lo, "bound_hi": hi, "passes": 0, "u_norm": 0.0,
-               "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
-        if lo <= before <= hi:
-            self.readings[t] = {**row, "action_after": before}
-            return actions
+        before = {c.feature: action_quantity(c, actions) for c in active}
+        row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
+        shifts = {c.feature: 0.0 for c in active}
+        log, passes, kept = None, 0, {}
+        for again in (False, True):  # the second sweep: only constraints a later push broke
+            for c in active:
+                (lo, hi), quantity = bounds[c.feature], action_quantity(c, actions)
+                if lo <= quantity <= hi or (again and not kept[c.feature]):
+                    kept.setdefault(c.feature, lo <= quantity <= hi)
+                    continue
+                actions, shifts[c.feature], used, log = self._search(obs, c, bounds, quantity, shifts, active, start)
+                passes += used
+                kept[c.feature] = bounds[c.feature][0] <= action_quantity(c, actions) <= bounds[c.feature][1]
+            if not several:
+                break
+        if log is not None:
+            self.vla.set_sampling_state(drawn)
+            row = {**row, **push_record(log, [c.feature for c in active] if several else None), "passes": passes}
+        for c in active:
+            (lo, hi), after = bounds[c.feature], action_quantity(c, actions)
+            suffix = f"_{c.feature}" if several else ""
+            row.update({f"action_before{suffix}": before[c.feature], f"bound_lo{suffix}": lo,
+                        f"bound_hi{suffix}": hi, f"action_after{suffix}": after})
+        self.readings[t] = row
+        return actions
+
+    def _search(self, obs, constraint: Constraint, bounds: dict, before: float, shifts: dict, active: list, start):
+        """The push that brings `constraint`'s quantity across its bound (`bounds`: feature -> [lo, hi] of every
+        active constraint): a bracketing search on its probes' reading shift from its shift so far, every pass
+        predicted again from the same sampling state `start`; the other active constraints' probes keep their
+        `shifts` (relative boxes), the holds their readings. Of the passes inside its bound, the one that breaks the
+        fewest other bounds, then nearest the target, is taken. Returns (actions, shift, passes, log)."""
+        plan = self.steering
+        lo, hi = bounds[constraint.feature]
+        others = [c for c in active if c is not constraint]
         below = before < lo
         target = lo + BAND / 2 if below else hi - BAND / 2  # inside the band past the bound
         accept = (lo, lo + BAND) if below else (hi - BAND, hi)
         # Bracketing search on the reading shift: a push at an action-expert layer saturates the actions fast (dz goes
         # -0.8 -> +0.5 for a shift of 0.05 at expert.5), a gripper logit slowly: start small, grow until the quantity
         # crosses the target, then false position inside the bracket (bisection when it saturates).
-        inner, outer = (0.0, before - target), None  # (shift, quantity - target) short of and past the target
-        shift, passes, best = (target - before) * FIRST_GAIN, 0, None
+        origin = shifts[constraint.feature]
+        inner, outer = (origin, before - target), None  # (shift, quantity - target) short of and past the target
+        shift, passes, best = origin + (target - before) * FIRST_GAIN, 0, None
         for _ in range(plan.passes):
             self.vla.set_sampling_state(start)
-            boxes = [ProbeBox(p, shift, shift, relative=True) for p in plan.probes] + self._held
+            tried = {**shifts, constraint.feature: shift}
+            boxes = [ProbeBox(p, tried[c.feature], tried[c.feature], relative=True)
+                     for c in active for p in self._probes[c.feature]] + self._held
             with Steerer(self.vla, boxes, method="control") as steerer:
                 actions = self.predict(obs)
-            quantity, passes = action_quantity(constraint, actions), passes + 1
-            if lo <= quantity <= hi and (best is None or abs(quantity - target) < abs(best[1] - target)):
-                best = (actions, quantity, steerer.log)
+            quantity, passes, last = action_quantity(constraint, actions), passes + 1, (actions, shift, steerer.log)
+            if lo <= quantity <= hi:
+                broken = sum(not bounds[c.feature][0] <= action_quantity(c, actions) <= bounds[c.feature][1]
+                             for c in others)
+                if best is None or (broken, abs(quantity - target)) < best[0]:
+                    best = ((broken, abs(quantity - target)), last)
             if accept[0] <= quantity <= accept[1]:
                 break
             miss = quantity - target
@@ -132,8 +193,9 @@ class ConstrainedAgent(VLAAgent):
                 gain = (miss - inner[1]) / (shift - inner[0])
                 inner = (shift, miss)
                 if outer is None:  # extrapolate, at most 4x further (4x if it did not move towards the target)
-                    guess = shift - miss / gain if gain * miss < 0 else 4 * shift
-                    guess = guess if abs(guess) <= 4 * abs(shift) else 4 * shift
+                    far = origin + 4 * (shift - origin)
+                    guess = shift - miss / gain if gain * miss < 0 else far
+                    guess = guess if abs(guess - origin) <= abs(far - origin) else far
                     shift = max(-MAX_SHIFT, min(MAX_SHIFT, guess))
                     continue
             else:
@@ -142,20 +204,29 @@ class ConstrainedAgent(VLAAgent):
             guess = s0 - m0 * (s1 - s0) / (m1 - m0)  # false position; bisection where it would hug an end
             width = abs(s1 - s0)
             shift = guess if min(s0, s1) + 0.1 * width < guess < max(s0, s1) - 0.1 * width else (s0 + s1) / 2
-        self.vla.set_sampling_state(drawn)
-        if best is not None:  # the satisfying pass nearest the bound; else the last, least-violating one
-            actions, quantity, log = best
-        else:
-            log = steerer.log
-        self.readings[t] = {**row, **push_record(log), "action_after": quantity, "passes": passes}
-        return actions
+        actions, shift, log = best[1] if best is not None else last  # the best satisfying pass; else the last,
+        return actions, shift, passes, log  # least-violating one
 
 
-def push_record(log: list[dict]) -> dict:
+def push_record(log: list[dict], features: list[str] | None = None) -> dict:
     """A steered prediction's reading columns from its Steerer log: the reading at the first forward through the first
-    steered layer (row 0: one observation), and the push summed over every forward of that prediction."""
+    steered layer (row 0: one observation), and the push summed over every forward of that prediction. `features`
+    (several constraints: theirs, `height`, ...): the reading of each constraint's probe at its first forward, as
+    `reading_before_<feature>` and `reading_after_<feature>`."""
     first = log[0]
-    pushes = [e["u_norm"] for e in log if e["row"] == 0 and e["feature"] == first["feature"]]  # one per forward
-    return {"reading_before": first["before"], "reading_after": first["after"], "u_norm": first["u_norm"],
-            "control_active": first["active"], "u_norm_all": sum(pushes),
-            "active_share": sum(u > 0 for u in pushes) / len(pushes)}
+    pushes = {}  # one per forward of a steered layer: the first entry of its row 0
+    for e in log:
+        if e["row"] == 0:
+            pushes.setdefault(e["forward"], e["u_norm"])
+    pushes = list(pushes.values())
+    record = {"u_norm": first["u_norm"], "control_active": first["active"], "u_norm_all": sum(pushes),
+              "active_share": sum(u > 0 for u in pushes) / len(pushes)}
+    if features is None:
+        return {"reading_before": first["before"], "reading_after": first["after"], **record}
+    from vlactl.rollout.constraints import KINDS
+
+    for feature in features:
+        entry = next((e for e in log if e["row"] == 0 and e["feature"] == KINDS[feature][3]), None)
+        if entry is not None:
+            record.update({f"reading_before_{feature}": entry["before"], f"reading_after_{feature}": entry["after"]})
+    return record

@@ -19,11 +19,12 @@ EPISODE_KEY = ["task_id", "episode"]
 EPISODE_COLUMNS = [
     "suite", *EPISODE_KEY, "instruction", "init_state", "seed", "success", "steps", "wall_s", "model",
     "method", "constraint", "start_gripper",  # the gripper state the episode settled in (open, or closed)
-    "satisfaction",  # the fraction of the constraint window's steps satisfied
+    "satisfaction",  # the fraction of the constraint window's steps satisfied (several: of the steps in any window,
+                     # every constraint covering the step satisfied; then also satisfaction_<feature> per constraint)
     "perturbation",  # vlactl.env.perturbations.Perturbation.name, or none
 ]
-# With a constraint, steps also get the columns of vlactl.rollout.constraints.judge_steps and of
-# vlactl.rollout.constrained.READING_COLUMNS.
+# With a constraint, steps also get the columns of vlactl.rollout.constraints.judge_all and of
+# vlactl.rollout.constrained.reading_columns.
 STEP_COLUMNS = [*EPISODE_KEY, "t", *STATE_FEATURES, *ACTION_FEATURES, "speed"]
 
 
@@ -57,7 +58,8 @@ def merge(out: Path, keys: list[tuple[int, int]]) -> tuple[pd.DataFrame, pd.Data
     """The episode and step tables of the finished episodes among `keys`, in key order."""
     done = [stem(out, t, k) for t, k in sorted(keys) if is_done(out, t, k)]
     rows = [json.loads(s.with_suffix(".json").read_text()) for s in done]
-    episodes = pd.DataFrame(rows, columns=EPISODE_COLUMNS)
+    own = dict.fromkeys(key for row in rows for key in row if key.startswith("satisfaction_"))  # several constraints
+    episodes = pd.DataFrame(rows, columns=[*EPISODE_COLUMNS, *own])
     steps = [pd.read_parquet(s.with_suffix(".parquet")) for s in done]
     steps = pd.concat(steps, ignore_index=True) if steps else pd.DataFrame(columns=STEP_COLUMNS)
     return episodes, steps

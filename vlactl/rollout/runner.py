@@ -25,7 +25,8 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
-from vlactl.rollout.constraints import BOXES, START_GRIPPER, parse_constraint, start_gripper
+from vlactl.rollout.constraints import (BOXES, START_GRIPPER, as_constraints, constraint_name, held_by_default,
+                                       parse_constraints, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
@@ -42,13 +43,27 @@ BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
     """The rollout config; `model` is a registry name, a checkpoint path, or `scripted`. `constraint=gripper=open`
-    is taken as written (Hydra would need the value quoted)."""
-    return load_policy_stage_config("rollout", quote_values(overrides, "constraint"))
+    and `constraint=[height=high,speed=low]` are taken as written (Hydra would need the value quoted); several
+    constraints are saved in one canonical form, `height=high,speed=low` (KINDS order), and a bad list is a one-line
+    error here, before any run starts."""
+    cfg = load_policy_stage_config("rollout", quote_values(overrides, "constraint"))
+    canonical_constraint(cfg)
+    return cfg
+
+
+def canonical_constraint(cfg: DictConfig) -> tuple:
+    """The run's constraints (`parse_constraints`), with `cfg.constraint` rewritten in their canonical form."""
+    constraints = parse_constraints(cfg.constraint, cfg.window)
+    if constraints:
+        cfg.constraint = constraint_name(constraints)
+    return constraints
 
 
 def steering(cfg: DictConfig, constraint) -> Steering:
     """The run's intervention: method, and for control/alpha the probes of the constraint's feature at the chosen
-    layers (by default the most controllable layer or group, else the best observable layer, of the probe run)."""
+    layers (by default the most controllable layer or group, else the best observable layer, of the probe run).
+    `constraint`: a Constraint, or several (control with box=action, filter, prompt and none): each steered by the
+    probes of its own action read-out at the layers chosen for that feature."""
     import pandas as pd
 
     from vlactl.steering.controllability import controllability_rows
@@ -56,8 +71,14 @@ def steering(cfg: DictConfig, constraint) -> Steering:
 
     check_choice("method", cfg.method, METHODS)
     check_choice("box", cfg.box, BOXES)
-    if cfg.method != "none" and constraint is None:
+    constraints = as_constraints(constraint)
+    if cfg.method != "none" and not constraints:
         raise UsageError(f"method={cfg.method} needs a constraint, e.g. constraint=gripper=open")
+    one_only = cfg.method in ("alpha", "meandiff") or (cfg.method == "control" and cfg.box == "state")
+    if len(constraints) > 1 and one_only:
+        what = "box=state" if cfg.method == "control" else f"method={cfg.method}"
+        raise UsageError(f"{what} takes one constraint, not {len(constraints)} (constraint={constraint_name(constraints)}"
+                         f"); several at once: method=control with box=action, filter, prompt or none")
     if cfg.method != "none" and cfg.model == SCRIPTED:
         raise UsageError(f"method={cfg.method} needs a VLA; the scripted expert takes no instruction or steering")
     if cfg.hold and cfg.method != "control":
@@ -73,22 +94,24 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     if run is not None:
         _check_probe_weights(run, str(cfg.model))
     threshold = scale = 0.0
-    if constraint is not None and constraint.feature == "speed":
+    features = {c.feature for c in constraints}
+    if "speed" in features:
         threshold = demo_constant(cfg, "speed_threshold", run)
-    if bounds_actions and constraint.feature != "gripper":
+    if bounds_actions and features - {"gripper"}:
         scale = demo_constant(cfg, "metres_per_unit", run)
         if scale <= 0:
             raise UsageError(f"metres_per_unit must be > 0, got {scale}")
     probes = holds = ()
     if run is not None:
-        feature = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
         table = pd.read_parquet(run / METRICS_NAME)
-        control = controllability_rows(run, feature) if cfg.layers is None else None
-        layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
-        probes = _load_probes(run, layers, feature, str(run))
-        holds = _hold_probes(cfg, constraint, run, layers)
+        for c in constraints:  # each constraint's probes at the layers chosen for its feature
+            feature = c.action_feature if cfg.box == "action" else c.probe_feature
+            control = controllability_rows(run, feature) if cfg.layers is None else None
+            layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
+            probes += _load_probes(run, layers, feature, str(run))
+        holds = _hold_probes(cfg, constraints, run, probes)
     meandiff = cfg.method == "meandiff"
-    directions = mean_difference_directions(cfg, constraint, [p.layer for p in probes]) if meandiff else None
+    directions = mean_difference_directions(cfg, constraints[0], [p.layer for p in probes]) if meandiff else None
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
                     metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
@@ -169,30 +192,38 @@ def _load_probes(run: Path, layers: list[str], feature: str, source: str, hint: 
     return tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
 
 
-def _hold_probes(cfg: DictConfig, constraint, run: Path, layers: list[str]) -> tuple:
-    """`hold=[dx, dy, dz]`: on every steered layer, the probes of those features, whose readings the controller keeps
-    within hold_tolerance of their unsteered values (the controller's multi-box QP with relative boxes)."""
+def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tuple:
+    """`hold=[dx, dy, dz]`: on every steered layer (those of the `steered` probes), the probes of those features,
+    whose readings the controller keeps within hold_tolerance of their unsteered values (the controller's multi-box QP
+    with relative boxes)."""
+    from collections import Counter
+
     from vlactl.steering.activations import FEATURES
     from vlactl.steering.controller import MAX_PROBES
 
-    steered = constraint.action_feature if cfg.box == "action" else constraint.probe_feature
-    features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else default_holds(cfg, constraint, run)))
+    constraints = as_constraints(constraint)
+    features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else default_holds(cfg, constraints, run)))
     if not features:
         return ()
-    allowed = [f for f in FEATURES if f != steered]
+    allowed = [f for f in FEATURES if f not in {p.feature for p in steered}]
     for feature in features:
         check_choice("hold feature", feature, allowed)
-    if len(features) + 1 > MAX_PROBES:
-        raise UsageError(f"hold={features}: at most {MAX_PROBES - 1} features can be held beside the constraint")
+    beside = max(Counter(p.layer for p in steered).values(), default=1)  # the constraints' probes on one layer
+    if len(features) + beside > MAX_PROBES:
+        who = "the constraint" if len(constraints) == 1 else f"{beside} constraints on one layer"
+        raise UsageError(f"hold={features}: at most {MAX_PROBES - beside} features can be held beside {who} "
+                         f"(the controller solves at most {MAX_PROBES} boxes a layer)")
     if float(cfg.hold_tolerance) < 0:
         raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
     hint = "; train it with `vlactl train-probes features=[...]` on the same activations"
+    layers = list(dict.fromkeys(p.layer for p in steered))
     return tuple(p for feature in features for p in _load_probes(run, layers, feature, str(run), hint))
 
 
 def default_holds(cfg: DictConfig, constraint, run: Path) -> list[str]:
-    """hold=null: under control on the actions, the action read-outs the constraint should leave alone
-    (`Constraint.holds`) that the probe run has, of the same family as the steered probe (a push that changes dz must
+    """hold=null: under control on the actions, the action read-outs the constraints should leave alone (for one,
+    `Constraint.holds`; for several, those every one of them holds, less the features they steer:
+    `held_by_default`) that the probe run has, of the same family as the steered probes (a push that changes dz must
     leave the gripper, dx and dy where they were; FACTS, 2026-12-01); else none."""
     import pandas as pd
 
@@ -201,7 +232,7 @@ def default_holds(cfg: DictConfig, constraint, run: Path) -> list[str]:
     if cfg.method != "control" or cfg.box != "action":
         return []
     present = set(pd.read_parquet(run / METRICS_NAME, columns=["feature"])["feature"])
-    return [f for f in constraint.holds if f in present]
+    return [f for f in held_by_default(constraint) if f in present]
 
 
 def _steered_layers(chosen, table: pd.DataFrame, control: pd.DataFrame | None = None) -> list[str]:
@@ -256,7 +287,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     env = OmegaConf.to_container(cfg.env, resolve=True)
     check_env_config(env)
     tasks = resolve_tasks(cfg.suite, cfg.tasks)
-    constraint = parse_constraint(cfg.constraint, cfg.window)
+    constraint = canonical_constraint(cfg)  # the run's constraints, one or several
     check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
     resolve_defaults(cfg)
     plan = steering(cfg, constraint)
@@ -305,9 +336,14 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         _run_workers(spec, batches(todo, cfg.workers), where, mine, cfg.workers)
 
     head = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
-            "method": cfg.method, "start_gripper": gripper, "steered_layers": [p.layer for p in plan.probes],
+            "method": cfg.method, "start_gripper": gripper,
+            "steered_layers": list(dict.fromkeys(p.layer for p in plan.probes)),
             "held": sorted({p.feature for p in plan.holds}),
             "perturbation": perturbation.name if perturbation else "none"}
+    if len(constraint) > 1:  # each constraint with its window and layers; _write_tables adds its satisfaction
+        head["constraints"] = {c.name: {"window": c.window, "steered_layers": [
+            p.layer for p in plan.probes if p.feature == (c.action_feature if cfg.box == "action" else c.probe_feature)]}
+            for c in constraint}
     summary = _write_tables(where, mine, head)
     if where != out:  # the last shard to finish merges; the others say what the run still lacks
         try:
@@ -331,7 +367,7 @@ def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
     check_choice("suite", cfg.suite, SUITES)
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps  # resolved as the shards saved
     resolve_defaults(cfg)
-    cfg.start_gripper = start_gripper(cfg.start_gripper, parse_constraint(cfg.constraint, cfg.window), cfg.method)
+    cfg.start_gripper = start_gripper(cfg.start_gripper, canonical_constraint(cfg), cfg.method)
     out = run_dir(cfg)
     folders = shards.folders(out)
     for folder in [out, *folders]:
@@ -359,6 +395,8 @@ def _write_tables(out: Path, keys: list[tuple[int, int]], head: dict) -> dict:
     atomic_write_parquet(out / "episodes.parquet", episodes)
     atomic_write_parquet(out / "steps.parquet", steps)
     summary = {**head, **summarise_file(out / "episodes.parquet")}
+    for name, entry in summary.get("constraints", {}).items():  # several constraints: each its own satisfaction
+        entry["satisfaction"] = summary.get(f"satisfaction_{name.partition('=')[0]}")
     atomic_write_json(out / "summary.json", summary)
     print(format_summary(summary))
     print(f"wrote {out}")
@@ -377,7 +415,7 @@ def judge_run(
 
     from vlactl.rollout.workers import judge_part
 
-    if constraint is None or cfg.method != "none":
+    if not constraint or cfg.method != "none":
         raise UsageError(f"judge_from=... judges an unconstrained run under a constraint with method=none, not "
                          f"constraint={cfg.constraint} method={cfg.method}")
     if gripper != "open":
@@ -395,7 +433,8 @@ def judge_run(
                          f"{missing[0][0]}, episode {missing[0][1]} first); run it with the same tasks and episodes")
     for task, k in todo:
         base = parts.stem(source, task, k)
-        row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint.name, "method": "none",
+        row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint_name(constraint),
+               "method": "none",
                "start_gripper": gripper}
         steps = judge_part(constraint, row, pd.read_parquet(base.with_suffix(".parquet")), plan.speed_threshold, {})
         parts.write(out, row, steps)
@@ -417,9 +456,11 @@ def resolved_method(cfg: DictConfig) -> str:
 
 
 def default_run_name(cfg: DictConfig) -> str:
-    """<model>_<suite>[_<constraint>_<method>][_perturb-<kind>], e.g. `hybrid_libero_spatial_gripper-open_control`."""
+    """<model>_<suite>[_<constraint>_<method>][_perturb-<kind>], e.g. `hybrid_libero_spatial_gripper-open_control`;
+    several constraints are each named: `hybrid_libero_spatial_height-high_speed-low_control`."""
     default = f"{cfg.model}_{cfg.suite}"
-    default += "" if cfg.constraint == "none" else f"_{cfg.constraint}_{resolved_method(cfg)}"
+    named = "_".join(folder_name(c.name) for c in parse_constraints(cfg.constraint))
+    default += f"_{named}_{resolved_method(cfg)}" if named else ""
     default += "" if cfg.perturb in (None, "none") else f"_perturb-{cfg.perturb}"
     return folder_name(default)
 

@@ -29,8 +29,9 @@ def _stats(episodes: pd.DataFrame) -> dict:
         "mean_steps": float(episodes["steps"].mean()) if n else None,
         "mean_steps_success": float(won.mean()) if len(won) else None,
     }
-    if "satisfaction" in episodes and episodes["satisfaction"].notna().any():
-        out["satisfaction"] = float(episodes["satisfaction"].mean())  # mean over episodes of the window fraction
+    for column in episodes.columns:  # several constraints: satisfaction_<feature> too, each in its own window
+        if column.startswith("satisfaction") and episodes[column].notna().any():
+            out[column] = float(episodes[column].mean())  # mean over episodes of the window fraction
     return out
 
 
@@ -55,8 +56,10 @@ def format_summary(summary: dict) -> str:
 
     lines = [f"success {summary['successes']}/{summary['episodes']} ({rate(summary, interval=True)})"]
     if "satisfaction" in summary:
+        each = ", ".join(f"{name} {100 * entry['satisfaction']:.0f}%" for name, entry in
+                         summary.get("constraints", {}).items() if entry.get("satisfaction") is not None)
         lines.append(f"constraint {summary.get('constraint')} ({summary.get('method')}): satisfied on "
-                     f"{100 * summary['satisfaction']:.0f}% of window steps")
+                     f"{100 * summary['satisfaction']:.0f}% of window steps" + (f" ({each})" if each else ""))
     for task, s in summary["per_task"].items():
         lines.append(f"  task {task}: {s['successes']}/{s['episodes']} ({rate(s)})  {s['instruction']}")
     return "\n".join(lines)

@@ -13,8 +13,8 @@ from typing import Callable
 from vlactl.env.perturbations import Perturbation
 from vlactl.rollout import parts
 from vlactl.rollout.agents import load_agent
-from vlactl.rollout.constrained import READING_COLUMNS, ConstrainedAgent, Steering
-from vlactl.rollout.constraints import filter_hook, judge_steps, parse_constraint
+from vlactl.rollout.constrained import ConstrainedAgent, Steering, reading_columns
+from vlactl.rollout.constraints import as_constraints, constraint_name, filter_hook, judge_all, parse_constraints
 from vlactl.rollout.episode import run_episode
 
 
@@ -32,7 +32,7 @@ class RunSpec:
     video: bool
     env: dict
     load_policy: Callable | None = None  # None: the model registry; tests pass a fixture loader
-    constraint: str = "none"
+    constraint: str = "none"  # one (`gripper=open`) or several (`height=high,speed=low`)
     window: int | None = None
     steering: Steering = Steering("none")
     start_gripper: str = "open"  # resolved: open or closed
@@ -65,8 +65,8 @@ def init_worker(spec: RunSpec) -> None:
 def _agent():
     global _AGENT
     if _AGENT is None:  # loaded on first use, not in the initializer: a failing initializer respawns forever
-        constraint = parse_constraint(_SPEC.constraint, _SPEC.window)
-        steered = constraint is not None and _SPEC.steering.method not in ("none", "filter")
+        constraint = parse_constraints(_SPEC.constraint, _SPEC.window)
+        steered = bool(constraint) and _SPEC.steering.method not in ("none", "filter")
         if _SPEC.policy:
             from vlactl.serve.client import RemoteAgent
             from vlactl.serve.protocol import encode_steer
@@ -100,7 +100,7 @@ def run_batch(batch: Batch) -> None:
     render = agent.needs_images or spec.video
     env = _env(batch.task, render)
     out = Path(spec.out)
-    constraint = parse_constraint(spec.constraint, spec.window)
+    constraint = parse_constraints(spec.constraint, spec.window)
     for k in batch.episodes:
         init_state, seed = k % env.n_init_states, spec.seed + k
         result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video,
@@ -109,16 +109,16 @@ def run_batch(batch: Batch) -> None:
             "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
             "wall_s": round(result.wall_s, 3), "model": spec.model, "method": spec.steering.method,
-            "constraint": constraint.name if constraint else "none", "start_gripper": spec.start_gripper,
+            "constraint": constraint_name(constraint), "start_gripper": spec.start_gripper,
             "perturbation": spec.perturbation.name if spec.perturbation else "none",
         }
         steps = parts.steps_frame(batch.task, k, result)
-        if constraint is not None:
+        if constraint:
             steps = judge_part(constraint, row, steps, spec.steering.speed_threshold, getattr(agent, "readings", {}))
         if spec.video:
             from vlactl.rollout.video import step_captions, write_video
 
-            captions = step_captions(constraint.name, steps) if constraint is not None and len(steps) else None
+            captions = step_captions(constraint_name(constraint), steps) if constraint and len(steps) else None
             write_video(out / "videos" / f"task{batch.task:02d}_ep{k:04d}.mp4", result.frames, captions)
         parts.write(out, row, steps)
 
@@ -137,9 +137,13 @@ def episode_hooks(spec: RunSpec, constraint) -> list:
 
 
 def judge_part(constraint, row: dict, steps, speed_threshold: float, readings: dict):
-    """An episode's step table judged against the constraint (its satisfaction goes into `row`), with the probe
-    readings of the steered predictions (`readings`: step -> READING_COLUMNS; none without steering)."""
-    steps, row["satisfaction"] = judge_steps(constraint, steps, float(steps["z"].iloc[0]), speed_threshold)
-    for column in READING_COLUMNS:
+    """An episode's step table judged against the constraint (its satisfaction goes into `row`; under several, each
+    one's as well, `satisfaction_<feature>`), with the probe readings of the steered predictions (`readings`: step ->
+    `reading_columns`; none without steering)."""
+    constraints = as_constraints(constraint)
+    steps, row["satisfaction"], own = judge_all(constraints, steps, float(steps["z"].iloc[0]), speed_threshold)
+    if len(constraints) > 1:
+        row.update({f"satisfaction_{feature}": value for feature, value in own.items()})
+    for column in reading_columns(constraints):
         steps[column] = [readings.get(t, {}).get(column) for t in steps["t"]]
     return steps

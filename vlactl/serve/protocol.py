@@ -84,7 +84,8 @@ def _unprobe(d: dict):
 
 
 def encode_steer(constraint: str, window, steering, replan_every, snap_gripper: bool) -> dict:
-    """A run's constraint and `Steering` as a map: every field, probes and directions as arrays."""
+    """A run's constraint (one, or several: `height=high,speed=low`) and `Steering` as a map: every field, probes
+    and directions as arrays."""
     plan = {}
     for f in fields(steering):
         value = getattr(steering, f.name)
@@ -98,11 +99,12 @@ def encode_steer(constraint: str, window, steering, replan_every, snap_gripper: 
 
 
 def decode_steer(message: dict):
-    """(constraint, Steering, replan_every, snap_gripper) from `encode_steer`'s map; UsageError if it is not one."""
+    """(constraints, Steering, replan_every, snap_gripper) from `encode_steer`'s map (constraints: a tuple, one or
+    several); UsageError if it is not one."""
     import torch
 
     from vlactl.rollout.constrained import Steering
-    from vlactl.rollout.constraints import parse_constraint
+    from vlactl.rollout.constraints import parse_constraints
 
     try:
         plan = dict(message["steering"])
@@ -111,7 +113,7 @@ def decode_steer(message: dict):
         if plan.get("directions") is not None:
             plan["directions"] = {k: torch.from_numpy(np.array(v)).float() for k, v in plan["directions"].items()}
         steering = Steering(**plan)
-        constraint = parse_constraint(message["constraint"], message["window"])
+        constraint = parse_constraints(message["constraint"], message["window"])
         return constraint, steering, message["replan_every"], bool(message["snap_gripper"])
     except (KeyError, TypeError, ValueError) as exc:  # another vlactl version's fields, or no steering map at all
         raise UsageError(f"unreadable steering settings ({type(exc).__name__}: {exc}); are the client's and the "
