@@ -62,3 +62,40 @@ def test_gripper_is_drawn_as_closure_and_every_condition_has_its_panel(tmp_path)
     assert titles == ["gripper=closed", "gripper=open", "height=high"]
     closed = next(ax for ax in fig.axes if ax.get_title() == "gripper=closed")
     assert [t.get_text() for t in closed.get_legend().get_texts()] == ["control", "filter"]
+
+
+def fake_run_of_two(root, seed=9):
+    """A run under [height=high,speed=low] as the rollout writes it: each constraint's columns suffixed."""
+    rng = np.random.default_rng(seed)
+    out = root / "hybrid_libero_spatial_height-high_speed-low_control"
+    out.mkdir(parents=True)
+    rows = [{"task_id": t, "episode": k, "success": bool(rng.random() < 0.7), "constraint": "height=high,speed=low",
+             "method": "control", "satisfaction": 0.25, "satisfaction_height": 0.5, "satisfaction_speed": 0.75}
+            for t in range(3) for k in range(2)]
+    pd.DataFrame(rows).to_parquet(out / "episodes.parquet")
+    steps = pd.DataFrame([{"task_id": t, "episode": k, "t": i, "in_window": i < 5, "in_window_height": i < 3,
+                           "in_window_speed": i < 5, "constraint_value_height": rng.normal(),
+                           "constraint_level_height": 1.0, "constraint_value_speed": rng.random(),
+                           "constraint_level_speed": 0.1, "gripper": rng.random()}
+                          for t in range(3) for k in range(2) for i in range(6)])
+    steps.to_parquet(out / "steps.parquet")
+
+
+def test_a_run_under_two_constraints_is_drawn_in_each_panel_under_its_full_name(tmp_path):
+    fake_run(tmp_path, "height=high", "control", 0)
+    fake_run_of_two(tmp_path)
+    episodes, steps = load_runs(sorted(p for p in tmp_path.iterdir()))
+    both = "control [height=high,speed=low]"
+    assert sorted(episodes.loc[episodes["method"] == both, "constraint"].unique()) == ["height=high", "speed=low"]
+    height = steps[(steps["method"] == both) & (steps["feature"] == "height")]
+    assert len(height) == 6 * 3 and (height["constraint_level"] == 1.0).all()  # its own window and columns
+    assert len(steps[(steps["method"] == both) & (steps["feature"] == "speed")]) == 6 * 5
+    fig = figure_success_vs_satisfaction(episodes)
+    panel = next(ax for ax in fig.axes if ax.get_title() == "height=high")
+    assert [t.get_text() for t in panel.get_legend().get_texts()] == ["control", both]
+    result = CliRunner().invoke(app, ["plot", "rollouts", f"root={tmp_path}", "formats=[png]"])
+    assert result.exit_code == 0, result.output
+    for name in ("violins_height", "violins_speed", "success_vs_satisfaction"):
+        assert (tmp_path / "figures" / f"{name}.png").stat().st_size > 0
+    table = (tmp_path / "figures" / "summary.md").read_text()
+    assert "| height=high,speed=low | control | 6 |" in table and "| 25% (height=high 50%, speed=low 75%) |" in table

@@ -9,6 +9,10 @@
   method on top of another stays visible (Figs. 6, 8);
 - `summary.md`: success (with its 95% Wilson interval) and satisfaction per constraint and method, the unconstrained
   run included.
+
+A run under several constraints (`height=high,speed=low`) is drawn in the panel of each of its constraints, judged by
+that constraint alone (its `_<feature>` columns), as the method `control [height=high,speed=low]`; summary.md gives
+its combined satisfaction and each constraint's.
 """
 
 from __future__ import annotations
@@ -34,16 +38,16 @@ YLABEL = {"gripper": "gripper closure (0 open, 1 closed)", "height": "z − star
 
 
 def load_runs(folders: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Episodes and in-window steps of constrained runs, each row tagged with feature, condition and method."""
+    """Episodes and in-window steps of constrained runs, each row tagged with feature, condition and method; a run
+    under several constraints once per constraint (`per_constraint`)."""
     episodes, steps = [], []
     for folder in folders:
         ep = pd.read_parquet(folder / "episodes.parquet")
         if ep.empty or (ep["constraint"] == "none").all():
             continue
-        st = pd.read_parquet(folder / "steps.parquet")
-        st = st[st["in_window"].astype(bool)].merge(ep[["task_id", "episode", "constraint", "method"]])
-        episodes.append(ep)
-        steps.append(st)
+        for ep, st in per_constraint(ep, pd.read_parquet(folder / "steps.parquet")):
+            episodes.append(ep)
+            steps.append(st[st["in_window"].astype(bool)].merge(ep[["task_id", "episode", "constraint", "method"]]))
     if not episodes:
         raise UsageError(f"no constrained rollout runs among {[str(f) for f in folders]}; run "
                          "`vlactl rollout --constraint ... --method ...` first")
@@ -54,8 +58,30 @@ def load_runs(folders: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
     return out[0], out[1]
 
 
+def per_constraint(episodes: pd.DataFrame, steps: pd.DataFrame) -> list[tuple[pd.DataFrame, pd.DataFrame]]:
+    """A run's tables as [(episodes, steps)]: as they are for one constraint; for several, one pair per constraint,
+    its own columns (`satisfaction_<feature>`, `in_window_<feature>`, ...) under the single-constraint names and the
+    method labelled with the run's full constraint, `control [height=high,speed=low]`."""
+    full = str(episodes["constraint"].iloc[0])
+    if "," not in full:
+        return [(episodes, steps)]
+    out = []
+    for name in full.split(","):
+        feature = name.partition("=")[0]
+        judged = {f"{column}_{feature}": column for column in ("in_window", "constraint_value", "constraint_level",
+                                                                "satisfied")}
+        out.append((episodes.assign(constraint=name, satisfaction=episodes[f"satisfaction_{feature}"],
+                                    method=episodes["method"] + f" [{full}]"),
+                    steps.drop(columns=[c for c in judged.values() if c in steps]).rename(columns=judged)))
+    return out
+
+
 def _methods(table: pd.DataFrame) -> list[str]:
-    return sorted(table["method"].unique(), key=lambda m: METHOD_ORDER.index(m) if m in METHOD_ORDER else 99)
+    def order(label: str):
+        method = label.split(" [")[0]  # several constraints: `control [height=high,speed=low]`
+        return METHOD_ORDER.index(method) if method in METHOD_ORDER else 99, label
+
+    return sorted(table["method"].unique(), key=order)
 
 
 def normalised(steps: pd.DataFrame, feature: str) -> np.ndarray:
@@ -88,7 +114,7 @@ def figure_violins(steps: pd.DataFrame, feature: str):
         ax.scatter([], [], color=f"C{c}", marker="s", label=f"{feature}={condition}")
     if feature != "gripper":
         ax.axhline(0, color="0.5", lw=0.8, ls="--")
-    ax.set_xticks(range(len(methods)), methods)
+    ax.set_xticks(range(len(methods)), [m.replace(" [", "\n[") for m in methods], fontsize=7)
     ax.set_ylabel(YLABEL.get(feature, feature))
     ax.set_title(f"{feature} in the window (median —, mean ···)", fontsize=9)
     ax.legend(fontsize=7)
@@ -139,8 +165,11 @@ def summary_table(folders: list[Path]) -> str:
     for (constraint, method), group in episodes.groupby(["constraint", "method"], sort=True):
         sat = group["satisfaction"].mean()
         low, high = success_interval(int(group["success"].sum()), len(group))
+        names = constraint.split(",") if "," in constraint else []  # several: each constraint's own too
+        each = [f"{name} {100 * group['satisfaction_' + name.partition('=')[0]].mean():.0f}%" for name in names]
+        shown = "–" if np.isnan(sat) else f"{100 * sat:.0f}%" + (f" ({', '.join(each)})" if each else "")
         rows.append(f"| {constraint} | {method} | {len(group)} | {100 * group['success'].mean():.0f}% "
-                    f"({100 * low:.0f}–{100 * high:.0f}%) | {'–' if np.isnan(sat) else f'{100 * sat:.0f}%'} |")
+                    f"({100 * low:.0f}–{100 * high:.0f}%) | {shown} |")
     return "\n".join(rows) + "\n"
 
 

@@ -16,27 +16,34 @@ CAPTION_HEIGHT = 40
 
 
 def step_captions(constraint: str, steps) -> list[str]:
-    """One caption per policy step from a judged step table (vlactl.rollout.constraints.judge_steps and the agent's
-    reading columns)."""
+    """One caption per policy step from a judged step table (vlactl.rollout.constraints.judge_all and the agent's
+    reading columns). `constraint`: one (`height=high`) or several (`height=high,speed=low`: each constraint's part
+    from its own `_<feature>` columns, side by side)."""
     import pandas as pd
 
     def number(row, key):
         value = row.get(key)
         return None if value is None or pd.isna(value) else float(value)
 
+    names = constraint.split(",")
+    suffixes = [""] if len(names) == 1 else [f"_{name.partition('=')[0]}" for name in names]
     lines = []
     for row in steps.to_dict("records"):
-        side = ">=" if constraint.endswith(("closed", "high")) else "<="
-        head = f"t={row['t']} {constraint} " + ("in window" if row["in_window"] else "after window")
-        value, level = number(row, "constraint_value"), number(row, "constraint_level")
-        judged = f"{value - level:+.3f} {side} 0" + (" ok" if row["in_window"] and row["satisfied"] else "")
-        push = ""
-        if number(row, "action_before") is not None:
-            push = (f"\nact {row['action_before']:+.2f}->{row['action_after']:+.2f} "
-                    f"in [{row['bound_lo']:+.2f}, {row['bound_hi']:+.2f}]")
-        elif number(row, "reading_before") is not None:
-            push = f"\nprobe {row['reading_before']:+.2f}->{row['reading_after']:+.2f}"
-        lines.append(f"{head}  {judged}{push}")
+        heads, pushes = [], []
+        for name, suffix in zip(names, suffixes):
+            side = ">=" if name.endswith(("closed", "high")) else "<="
+            inside = bool(row[f"in_window{suffix}"])
+            value, level = number(row, f"constraint_value{suffix}"), number(row, f"constraint_level{suffix}")
+            ok = inside and bool(row[f"satisfied{suffix}"])  # missing only outside the window
+            heads.append(f"{name} " + ("in window" if inside else "after window") +
+                         f"  {value - level:+.3f} {side} 0" + (" ok" if ok else ""))
+            tag = f"{suffix[1:]} " if suffix else ""
+            if number(row, f"action_before{suffix}") is not None:
+                pushes.append(f"{tag}act {row[f'action_before{suffix}']:+.2f}->{row[f'action_after{suffix}']:+.2f} "
+                              f"in [{row[f'bound_lo{suffix}']:+.2f}, {row[f'bound_hi{suffix}']:+.2f}]")
+            elif number(row, f"reading_before{suffix}") is not None:
+                pushes.append(f"{tag}probe {row[f'reading_before{suffix}']:+.2f}->{row[f'reading_after{suffix}']:+.2f}")
+        lines.append(f"t={row['t']} " + " | ".join(heads) + ("\n" + " | ".join(pushes) if pushes else ""))
     return lines
 
 
