@@ -1,8 +1,12 @@
 """Per-control-step inference time of the embedded models, amortised over the executed part of a chunk, with 1 and
 2 torch threads; parameters and checkpoint size; the cost of capturing every layer, and of capturing every layer
-while the controller steers one layer (always active); one training step.
+while the controller steers one layer (always active); one training step. Then, on the shipped hybrid
+(data/policies/hybrid) with its shipped steering probes, a rollout re-plan under two constraints at once
+(`constraint=[height=high,speed=low]`, control with box=action, the run's own layers and holds) against a plain one:
+where both bounds hold (no push: target <= 1.05x) and where both break (the search's passes, and their cost; the
+hand 1 cm below its start height, the speed bound at 80% of the predicted speed).
 
-    python benchmarks/bench_policy.py [--checkpoint PATH ...] [--repeats 20] [--batch 32]
+    python benchmarks/bench_policy.py [--checkpoint PATH ...] [--repeats 20] [--batch 32] [--no-constraints]
 
 Without checkpoints it times freshly built default-size models (timing does not depend on the weights).
 """
@@ -146,11 +150,80 @@ def train_step_s(policy, batch_size: int, repeats: int = 3) -> float:
     return cpu_ms / 1000
 
 
+def two_constraint_steps(repeats: int) -> None:
+    """A re-plan of the shipped hybrid as a rollout makes it (`VLAAgent.act` with an empty queue: one chunk
+    predicted) against the same re-plan by the `ConstrainedAgent` of `constraint=[height=high,speed=low]`
+    (box=action): with the hand far above its start height and a huge speed threshold (both bounds hold: one
+    prediction, no push), and with the hand 1 cm below its start height and a speed bound at 80% of the predicted
+    speed (both break: each searched in turn, the other's probes held)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from vlactl.config import REPO_ROOT
+    from vlactl.env.features import CONTROL_DT
+    from vlactl.rollout.agents import VLAAgent
+    from vlactl.rollout.constrained import ConstrainedAgent
+    from vlactl.rollout.runner import canonical_constraint, resolve_defaults, rollout_config, steering
+
+    if not (REPO_ROOT / "data" / "policies" / "hybrid").is_dir():
+        print("two constraints: skipped, no shipped hybrid in data/policies/hybrid")
+        return
+    torch.set_num_threads(1)
+    cfg = rollout_config(["model=hybrid", "constraint=[height=high,speed=low]", f"demos={REPO_ROOT / 'no-demos'}"])
+    constraints = canonical_constraint(cfg)
+    resolve_defaults(cfg)
+    plan = steering(cfg, constraints)  # the rollout's probes, layers and holds (shipped probes, their constants)
+    vla = load_policy("hybrid")
+    rng = np.random.default_rng(0)
+    size = vla.config.image_size
+    images = {cam: rng.integers(0, 256, (size, size, 3), dtype=np.uint8) for cam in vla.config.cameras}
+    libero_state = rng.normal(size=8).astype(np.float32)
+    env = SimpleNamespace(instruction=INSTRUCTION)
+
+    def seen(z: float):
+        return SimpleNamespace(images=images, libero_state=libero_state, state=np.array([0, 0, z, 0, 0, 0, 0.04]))
+
+    def replan(agent, z: float):
+        obs = seen(z)
+
+        def step():
+            agent._queue, agent._t = [], 0  # a re-plan at the window's first step
+            agent.act(obs)
+        return step
+
+    hold = ConstrainedAgent(vla, constraints, replace(plan, speed_threshold=1e3))
+    hold.reset(env, seen(1.0))  # start height 1.0 m
+    replan(hold, 1.2)()
+    speed = hold.readings[0]["action_before_speed"]  # the unsteered commanded speed: the break case asks for 80% of it
+    threshold = 0.8 * speed * plan.metres_per_unit / CONTROL_DT
+    agents = {"plain": VLAAgent(vla), "bounds hold": hold,
+              "bounds break": ConstrainedAgent(vla, constraints, replace(plan, speed_threshold=threshold))}
+    for agent in agents.values():
+        agent.reset(env, seen(1.0))
+    steps = {"plain": replan(agents["plain"], 1.0), "bounds hold": replan(agents["bounds hold"], 1.2),
+             "bounds break": replan(agents["bounds break"], 0.99)}
+    plain_ms, _ = time_ms(steps["plain"], repeats)
+    ratio = overheads(steps, {"bounds hold": "plain", "bounds break": "plain"}, repeats)
+    layers = {c.name: sorted({p.layer for p in plan.probes if p.feature == c.action_feature}) for c in constraints}
+    held = sorted({p.feature for p in plan.holds})
+    print(f"two constraints ({constraints[0].name}, {constraints[1].name}; control, box=action) on the shipped hybrid, "
+          f"steered layers {layers}, held {held}: a plain re-plan {plain_ms:.1f} ms (1 thread)")
+    for name in ("bounds hold", "bounds break"):
+        row = agents[name].readings[0]
+        passes = row["passes"]
+        quantities = ", ".join(f"{c.feature} {row[f'action_before_{c.feature}']:+.3f}->"
+                               f"{row[f'action_after_{c.feature}']:+.3f} in [{row[f'bound_lo_{c.feature}']:+.3f}, "
+                               f"{row[f'bound_hi_{c.feature}']:+.3f}]" for c in constraints)
+        print(f"  {name:12s}: {ratio[name]:.3f}x a plain re-plan ({100 * (ratio[name] - 1):+.1f}%), "
+              f"{passes} steered re-predictions; {quantities}" + ("  (target <= 1.05x)" if not passes else ""))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", nargs="*", default=[], help="checkpoint folders (default: fresh models)")
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--batch", type=int, default=32, help="batch size of the timed training step (0: skip)")
+    parser.add_argument("--no-constraints", action="store_true", help="skip the shipped hybrid's two-constraint step")
     args = parser.parse_args()
     policies = [load_policy(p) for p in args.checkpoint] or [default_policy(name) for name in MODELS]
     print(f"{'model':15s} {'params':>8s} {'ckpt MB':>8s} {'chunk/replan':>12s} {'ms/step 1t':>10s} {'(cpu)':>6s} "
@@ -184,6 +257,8 @@ def main() -> None:
           f"captured (target <= +10%); step: control = the minimal controller with its readings at "
           f"{policy.layer_names()[1]}, active at every forward (target <= +5%); all+control: every layer captured at "
           f"every forward as well; train: CPU s per step, batch {args.batch}, 1 thread")
+    if not args.no_constraints:
+        two_constraint_steps(args.repeats)
 
 
 if __name__ == "__main__":
