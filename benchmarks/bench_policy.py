@@ -204,7 +204,7 @@ def two_constraint_steps(repeats: int) -> None:
              "bounds break": replan(agents["bounds break"], 0.99)}
     plain_ms, _ = time_ms(steps["plain"], repeats)
     ratio = overheads(steps, {"bounds hold": "plain", "bounds break": "plain"}, repeats)
-    layers = {c.name: sorted({p.layer for p in plan.probes if p.feature == c.action_feature}) for c in constraints}
+    layers = {c.name: sorted({p.layer for p in plan.probes if p.feature in c.action_features}) for c in constraints}
     held = sorted({p.feature for p in plan.holds})
     print(f"two constraints ({constraints[0].name}, {constraints[1].name}; control, box=action) on the shipped hybrid, "
           f"steered layers {layers}, held {held}: a plain re-plan {plain_ms:.1f} ms (1 thread)")

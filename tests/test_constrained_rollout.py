@@ -22,7 +22,7 @@ def probes(tmp_path_factory):
     result = runner.invoke(app, ["collect", "model=random", f"dataset={demos}", f"output_dir={tmp / 'acts'}", *common])
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["train-probes", f"activations={tmp / 'acts'}", f"output_dir={tmp / 'run'}",
-                                 "features=[gripper_action,dx,dz,speed]", "cv_folds=2", "robustness_directions=2"])
+                                 "features=[gripper_action,dx,dy,dz,speed]", "cv_folds=2", "robustness_directions=2"])
     assert result.exit_code == 0, result.output
     return tmp / "run"
 
@@ -58,7 +58,7 @@ def test_control_with_held_readings_still_lands_in_the_box(probes, tmp_path):
 @pytest.mark.parametrize("extra, message", [
     (["method=alpha", "hold=[dx]"], "needs method=control"),
     (["method=control", "hold=[gripper_action]"], "hold feature"),
-    (["method=control", "hold=[dy]"], "no probe"),
+    (["method=control", "hold=[droll]"], "no probe"),
     (["method=control", "hold=[dx]", "hold_tolerance=-1"], "hold_tolerance"),
 ])
 def test_bad_holds_are_usage_errors(probes, tmp_path, extra, message):
@@ -229,8 +229,8 @@ def test_several_constraints_under_the_filter_keep_both_bounds_where_they_can(pr
     (["method=alpha"], "method=alpha takes one constraint, not 2"),
     (["method=meandiff"], "method=meandiff takes one constraint"),
     (["method=control", "box=state"], "box=state takes one constraint"),
-    (["method=control", "layers=[expert.0]", "hold=[x,y,z,dx,dy]"], "at most 4 features can be held beside 2 "
-                                                                    "constraints on one layer"),
+    (["method=control", "layers=[expert.0]", "hold=[x,y,z,roll]"], "at most 3 features can be held beside the 3 "
+                                                                   "steered probes on one layer"),
     (["method=control", "hold=[speed]"], "unknown hold feature 'speed'"),
 ])
 def test_several_constraints_where_they_cannot_go_are_usage_errors(probes, tmp_path, extra, message):

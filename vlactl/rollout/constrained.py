@@ -22,7 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import Constraint, action_bound, action_quantity, as_constraints, box, prompted, reference
+from vlactl.rollout.constraints import (Constraint, action_bound, action_quantity, as_constraints, box, prompted,
+                                       push_weights, reference)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -83,7 +84,7 @@ class ConstrainedAgent(VLAAgent):
         self.readings: dict[int, dict] = {}
         # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature)
         self._probes = {c.feature: steering.probes if len(self.constraints) == 1 else
-                        tuple(p for p in steering.probes if p.feature == c.action_feature) for c in self.constraints}
+                        tuple(p for p in steering.probes if p.feature in c.action_features) for c in self.constraints}
 
     def reset(self, env, obs) -> None:
         super().reset(env, obs)
@@ -128,6 +129,7 @@ class ConstrainedAgent(VLAAgent):
         actions = self.predict(obs)
         drawn = self.vla.sampling_state()
         before = {c.feature: action_quantity(c, actions) for c in active}
+        self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
         row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
         shifts = {c.feature: 0.0 for c in active}
         log, passes, kept = None, 0, {}
@@ -173,9 +175,7 @@ class ConstrainedAgent(VLAAgent):
         shift, passes, best = origin + (target - before) * FIRST_GAIN, 0, None
         for _ in range(plan.passes):
             self.vla.set_sampling_state(start)
-            tried = {**shifts, constraint.feature: shift}
-            boxes = [ProbeBox(p, tried[c.feature], tried[c.feature], relative=True)
-                     for c in active for p in self._probes[c.feature]] + self._held
+            boxes = self._push_boxes({**shifts, constraint.feature: shift}, active)
             with Steerer(self.vla, boxes, method="control") as steerer:
                 actions = self.predict(obs)
             quantity, passes, last = action_quantity(constraint, actions), passes + 1, (actions, shift, steerer.log)
@@ -208,6 +208,17 @@ class ConstrainedAgent(VLAAgent):
         return actions, shift, passes, log  # least-violating one
 
 
+    def _push_boxes(self, shifts: dict, active: list) -> list:
+        """Relative boxes for the constraints' reading shifts: each probe shifted by the sum, over the constraints
+        that push it, of their shift times its share (`push_weights`; height and speed both push dz), and the holds."""
+        total = {}
+        for c in active:
+            for p in self._probes[c.feature]:
+                probe, shift = total.get((p.layer, p.feature), (p, 0.0))
+                total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * self._weights[c.feature][p.feature])
+        return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + self._held
+
+
 def push_record(log: list[dict], features: list[str] | None = None) -> dict:
     """A steered prediction's reading columns from its Steerer log: the reading at the first forward through the first
     steered layer (row 0: one observation), and the push summed over every forward of that prediction. `features`
@@ -226,7 +237,7 @@ def push_record(log: list[dict], features: list[str] | None = None) -> dict:
     from vlactl.rollout.constraints import KINDS
 
     for feature in features:
-        entry = next((e for e in log if e["row"] == 0 and e["feature"] == KINDS[feature][3]), None)
+        entry = next((e for e in log if e["row"] == 0 and e["feature"] == KINDS[feature][3][0]), None)
         if entry is not None:
             record.update({f"reading_before_{feature}": entry["before"], f"reading_after_{feature}": entry["after"]})
     return record

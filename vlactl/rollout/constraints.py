@@ -23,12 +23,13 @@ from dataclasses import dataclass
 from vlactl.errors import UsageError
 
 # feature -> (allowed values, default window, the step-table column judged = the probe feature box=state steers,
-#             the probe feature box=action steers: a read-out of the action the policy is about to take,
+#             the probe features box=action steers: read-outs of the action the policy is about to take (speed: the
+#             commanded translation, pushed along its own direction, `push_weights`),
 #             the action read-outs box=action holds by default: those the constraint should leave alone)
 KINDS = {
-    "gripper": (("open", "closed"), 15, "gripper_action", "gripper_action", ("dx", "dy", "dz")),
-    "height": (("low", "high"), 15, "z", "dz", ("dx", "dy", "gripper_action")),
-    "speed": (("low", "high"), 25, "speed", "speed", ("gripper_action",)),
+    "gripper": (("open", "closed"), 15, "gripper_action", ("gripper_action",), ("dx", "dy", "dz")),
+    "height": (("low", "high"), 15, "z", ("dz",), ("dx", "dy", "gripper_action")),
+    "speed": (("low", "high"), 25, "speed", ("dx", "dy", "dz"), ("gripper_action",)),
 }
 BOXES = ("action", "state")
 PROMPTS = {  # what the prompting baseline appends to the instruction
@@ -56,8 +57,15 @@ class Constraint:
         return KINDS[self.feature][2]
 
     @property
-    def action_feature(self) -> str:
+    def action_features(self) -> tuple[str, ...]:
         return KINDS[self.feature][3]
+
+    @property
+    def quantity_feature(self) -> str:
+        """The one probe feature that reads the bounded quantity itself (gripper_action, dz, speed): what the fixed
+        pushes, alpha and meandiff, push along."""
+        features = self.action_features
+        return features[0] if len(features) == 1 else self.feature
 
     @property
     def holds(self) -> tuple[str, ...]:
@@ -143,7 +151,7 @@ def held_by_default(constraints) -> tuple[str, ...]:
     constraints = as_constraints(constraints)
     if not constraints:
         return ()
-    steered = {c.action_feature for c in constraints}
+    steered = {f for c in constraints for f in c.action_features}
     return tuple(f for f in constraints[0].holds if all(f in c.holds for c in constraints) and f not in steered)
 
 
@@ -181,7 +189,8 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
                  decay: float = BARRIER_DECAY, steps: int = 1, margin: float = 0.0) -> tuple[float, float]:
     """[lo, hi] on the action quantity the constraint acts on (`action_quantity`), for the next `steps` actions
     (docs/steering.md):
-    - gripper: the mean gripper command, past +-0.5 on the wanted side (it then executes as close / open, not as hold);
+    - gripper: every gripper command about to be executed past +-0.5 on the wanted side (it then executes as close /
+      open, not as hold);
     - height: the mean commanded dz, as a discrete-time barrier on h = +-(z - z0) >= 0: with z' = z + s dz (s =
       `metres_per_unit`, measured from the demonstrations), h' >= (1 - decay) h per step, i.e. over k steps for high
       mean dz >= -(1 - (1 - decay)^k) (z - z0) / (k s) (k = 1: dz >= -decay (z - z0) / s), and the mirror image for
@@ -206,16 +215,32 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
 
 
 def action_quantity(constraint: Constraint, actions):
-    """What `action_bound` bounds, over the actions about to be executed ([k, 7]): their mean gripper command, mean
-    dz, or mean translation norm."""
+    """What `action_bound` bounds, over the actions about to be executed ([k, 7]): the gripper command least on the
+    wanted side (every one of them is judged, so every one must snap to close / open), the mean dz, or the mean
+    translation norm."""
     import numpy as np
 
     actions = np.asarray(actions, dtype=np.float64).reshape(-1, 7)
     if constraint.feature == "gripper":
-        return float(actions[:, 6].mean())
+        return float(actions[:, 6].min() if constraint.upper else actions[:, 6].max())
     if constraint.feature == "height":
         return float(actions[:, 2].mean())
     return float(np.linalg.norm(actions[:, :3], axis=1).mean())
+
+
+def push_weights(constraint: Constraint, actions) -> dict[str, float]:
+    """How a unit reading shift of the constraint's push is shared among its probes (`Constraint.action_features`):
+    all of it for one feature; for speed, along the predicted translation's own direction (mean over the actions about
+    to be executed), so the push slows or speeds the hand without turning it."""
+    import numpy as np
+
+    features = constraint.action_features
+    if len(features) == 1:
+        return {features[0]: 1.0}
+    motion = np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, :3].mean(0)
+    norm = float(np.linalg.norm(motion))
+    unit = motion / norm if norm > 1e-6 else np.full(3, 3 ** -0.5)
+    return dict(zip(features, map(float, unit)))
 
 
 def filter_action(constraint: Constraint, action, z: float, level: float, metres_per_unit: float,

@@ -104,8 +104,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     probes = holds = ()
     if run is not None:
         table = pd.read_parquet(run / METRICS_NAME)
-        for c in constraints:  # each constraint's probes at the layers chosen for its feature
-            feature = c.action_feature if cfg.box == "action" else c.probe_feature
+        # each steered feature's probes at the layers chosen for it (height and speed share dz's)
+        for feature in dict.fromkeys(f for c in constraints for f in steered_features(c, cfg.box, cfg.method)):
             control = controllability_rows(run, feature) if cfg.layers is None else None
             layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
             probes += _load_probes(run, layers, feature, str(run))
@@ -116,6 +116,15 @@ def steering(cfg: DictConfig, constraint) -> Steering:
                     speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
                     metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
                     height_margin=float(cfg.height_margin), passes=int(cfg.passes))
+
+
+def steered_features(constraint, box: str, method: str) -> tuple[str, ...]:
+    """The probe features a constraint's push moves: for control, read-outs of the action (box=action) or of the
+    state (box=state); the fixed pushes (alpha, meandiff) push along one probe: with box=action the read-out of the
+    constrained quantity."""
+    if box == "state":
+        return (constraint.probe_feature,)
+    return constraint.action_features if method == "control" else (constraint.quantity_feature,)
 
 
 def probes_run(cfg: DictConfig) -> Path:
@@ -188,7 +197,10 @@ def _load_probes(run: Path, layers: list[str], feature: str, source: str, hint: 
 
     missing = [layer for layer in layers if not (run / "probes" / probe_filename(layer, feature)).is_file()]
     if missing or not layers:
-        raise UsageError(f"no probe of {feature!r} for layer {missing[0] if missing else '?'} in {source!r}{hint}")
+        where = f" for layer {missing[0]}" if missing else ""
+        hint = hint or ("; train it with `vlactl train-probes features=[...]` (box=action steers dx, dy, dz and "
+                        "gripper_action)")
+        raise UsageError(f"no probe of {feature!r}{where} in {source!r}{hint}")
     return tuple(load_probe(run / "probes" / probe_filename(layer, feature)) for layer in layers)
 
 
@@ -205,12 +217,13 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
     features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else default_holds(cfg, constraints, run)))
     if not features:
         return ()
-    allowed = [f for f in FEATURES if f not in {p.feature for p in steered}]
+    pushed = {p.feature for p in steered} | {c.quantity_feature for c in constraints}  # a hold would fight the push
+    allowed = [f for f in FEATURES if f not in pushed]
     for feature in features:
         check_choice("hold feature", feature, allowed)
     beside = max(Counter(p.layer for p in steered).values(), default=1)  # the constraints' probes on one layer
     if len(features) + beside > MAX_PROBES:
-        who = "the constraint" if len(constraints) == 1 else f"{beside} constraints on one layer"
+        who = "the constraint" if beside == 1 else f"the {beside} steered probes on one layer"
         raise UsageError(f"hold={features}: at most {MAX_PROBES - beside} features can be held beside {who} "
                          f"(the controller solves at most {MAX_PROBES} boxes a layer)")
     if float(cfg.hold_tolerance) < 0:
@@ -342,7 +355,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
             "perturbation": perturbation.name if perturbation else "none"}
     if len(constraint) > 1:  # each constraint with its window and layers; _write_tables adds its satisfaction
         head["constraints"] = {c.name: {"window": c.window, "steered_layers": [
-            p.layer for p in plan.probes if p.feature == (c.action_feature if cfg.box == "action" else c.probe_feature)]}
+            p.layer for p in plan.probes if p.feature in steered_features(c, cfg.box, cfg.method)]}
             for c in constraint}
     summary = _write_tables(where, mine, head)
     if where != out:  # the last shard to finish merges; the others say what the run still lacks
