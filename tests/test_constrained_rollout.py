@@ -89,6 +89,7 @@ def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
         pd.testing.assert_frame_equal(judged, ran.drop(columns="wall_s", errors="ignore"))
     with pytest.raises(UsageError, match="ran with seed=0, not 1"):
         rollout(tmp_path, "method=none", f"judge_from={tmp_path / 'random_libero_spatial'}", "run_name=j2", "seed=1")
+    assert not (tmp_path / "j2").exists()  # refused before the run folder is made
 
 
 @pytest.mark.slow

@@ -32,6 +32,11 @@ def test_constants_come_from_the_probe_run_when_the_demonstrations_are_not_on_di
     assert demo_constant(rollout_config(["metres_per_unit=0.02"]), "metres_per_unit", None) == 0.02
     with pytest.raises(UsageError, match="make it with `vlactl demos`"):
         demo_constant(cfg, "speed_threshold", tmp_path)
+    # no probe run (none, prompt, filter): the shipped probes' record, so `--method filter` runs on a fresh clone
+    shipped = json.loads((SHIPPED_PROBES / "hybrid" / "steer" / "provenance.json").read_text())
+    assert demo_constant(cfg, "speed_threshold", None) == shipped["speed_threshold"]
+    with pytest.raises(UsageError, match="make it with `vlactl demos`"):
+        demo_constant(rollout_config([f"demos={tmp_path / 'nowhere'}", "model=random"]), "speed_threshold", None)
 
 
 @pytest.mark.skipif(not (SHIPPED_PROBES / "hybrid" / "steer" / "metrics.parquet").is_file(), reason="no shipped probes")

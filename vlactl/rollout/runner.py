@@ -175,7 +175,8 @@ def shipped_probe_models() -> list[str]:
 
 def demo_constant(cfg: DictConfig, key: str, run: Path | None) -> float:
     """speed_threshold / metres_per_unit: as given, else measured from `demos` when it is on disk, else the value the
-    probe run recorded from its own demonstrations (vlactl.data.motion)."""
+    probe run (without one, as for none, prompt and filter: the probes shipped for the model) recorded from its own
+    demonstrations (vlactl.data.motion)."""
     from vlactl.data import motion
 
     if cfg[key] is not None:
@@ -183,7 +184,7 @@ def demo_constant(cfg: DictConfig, key: str, run: Path | None) -> float:
     demos = resolve_path(cfg.demos)
     if (demos / "meta").is_dir():
         return motion.speed_median(demos) if key == "speed_threshold" else motion.metres_per_unit(demos)
-    recorded = probe_provenance(run)
+    recorded = probe_provenance(run if run is not None else SHIPPED_PROBES / Path(str(cfg.model)).name / "steer")
     if key in recorded:
         return float(recorded[key])
     raise UsageError(f"{key} is measured from the demonstrations, and demos={cfg.demos!r} is no demonstration set; "
@@ -325,6 +326,9 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,
               "gripper_levels": None if agent.gripper_levels is None else agent.gripper_levels.tolist()}
     del agent
+    if cfg.judge_from and perturbation is not None:
+        raise UsageError(f"judge_from=... judges unperturbed episodes; drop it with perturb={cfg.perturb}")
+    source = judge_source(cfg, constraint, gripper) if cfg.judge_from else None  # checked before anything is written
     ensure_writable_dir(where)
     save_config(cfg, where)
 
@@ -341,10 +345,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         env=env, load_policy=load_policy, constraint=str(cfg.constraint),
         window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation, policy=cfg.policy,
     )
-    if cfg.judge_from and perturbation is not None:
-        raise UsageError(f"judge_from=... judges unperturbed episodes; drop it with perturb={cfg.perturb}")
-    if cfg.judge_from:
-        judge_run(cfg, constraint, plan, todo, where, gripper)
+    if source is not None:
+        judge_run(cfg, constraint, plan, todo, where, source)
     else:
         _run_workers(spec, batches(todo, cfg.workers), where, mine, cfg.workers)
 
@@ -416,18 +418,9 @@ def _write_tables(out: Path, keys: list[tuple[int, int]], head: dict) -> dict:
     return summary
 
 
-def judge_run(
-    cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path, gripper: str
-) -> None:
-    """method=none under a constraint without re-running: the policy acts as it does unconstrained, so judge the
-    episodes of the unconstrained run `judge_from` (same model, suite, seeds and settings) against the constraint.
-    Not when the episodes start with the gripper closed: the unconstrained run started open."""
-    import json
-
-    import pandas as pd
-
-    from vlactl.rollout.workers import judge_part
-
+def judge_source(cfg: DictConfig, constraint, gripper: str) -> Path:
+    """The unconstrained run `judge_from` names, if it can stand in for this one (same model, suite, seeds and
+    settings; not when the episodes start with the gripper closed: the unconstrained run started open)."""
     if not constraint or cfg.method != "none":
         raise UsageError(f"judge_from=... judges an unconstrained run under a constraint with method=none, not "
                          f"constraint={cfg.constraint} method={cfg.method}")
@@ -440,6 +433,19 @@ def judge_run(
     if clash:
         key, before, now = clash
         raise UsageError(f"judge_from={cfg.judge_from!r} ran with {key}={before!r}, not {now!r}")
+    return source
+
+
+def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path,
+              source: Path) -> None:
+    """method=none under a constraint without re-running: the policy acts as it does unconstrained, so judge the
+    episodes of the unconstrained run `source` (`judge_source`) against the constraint."""
+    import json
+
+    import pandas as pd
+
+    from vlactl.rollout.workers import judge_part
+
     missing = [key for key in todo if not parts.is_done(source, *key)]
     if missing:
         raise UsageError(f"judge_from={cfg.judge_from!r} lacks {len(missing)} of these episodes (task "
@@ -447,8 +453,7 @@ def judge_run(
     for task, k in todo:
         base = parts.stem(source, task, k)
         row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint_name(constraint),
-               "method": "none",
-               "start_gripper": gripper}
+               "method": "none", "start_gripper": "open"}  # judge_source: only runs that start open
         steps = judge_part(constraint, row, pd.read_parquet(base.with_suffix(".parquet")), plan.speed_threshold, {})
         parts.write(out, row, steps)
 
