@@ -84,22 +84,22 @@ def test_bad_input_is_one_line_and_exit_2(acts, monkeypatch, capsys, args, needl
     assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], err
 
 
-def test_frames_query_trains_on_the_chosen_frames_only(acts, tmp_path, monkeypatch, capsys):
-    folder, _ = acts
-    code, err = run_here(monkeypatch, capsys, "train-probes", f"activations={folder}", f"output_dir={tmp_path / 'early'}",
-                         "features=[x]", "frames=frame_index < 10", "robustness_directions=2")
+def trained(acts, out, monkeypatch, capsys, *args) -> pd.DataFrame:
+    """The metrics table of a train-probes run on the fixture's activations that must succeed."""
+    code, err = run_here(monkeypatch, capsys, "train-probes", f"activations={acts[0]}", f"output_dir={out}",
+                         "robustness_directions=2", *args)
     assert code == 0, err
-    table = pd.read_parquet(tmp_path / "early" / "metrics.parquet")
+    return pd.read_parquet(out / "metrics.parquet")
+
+
+def test_frames_query_trains_on_the_chosen_frames_only(acts, tmp_path, monkeypatch, capsys):
+    table = trained(acts, tmp_path / "early", monkeypatch, capsys, "features=[x]", "frames=frame_index < 10")
     full = 24 * 25
     assert (table["n_train"] + table["n_test"] == 24 * 10).all() and (table["n_train"] < full).all()
 
 
 def test_a_steering_family_is_recorded_per_probe(acts, tmp_path, monkeypatch, capsys):
-    folder, _ = acts
-    code, err = run_here(monkeypatch, capsys, "train-probes", f"activations={folder}", f"output_dir={tmp_path / 'md'}",
-                         "features=[z,gripper]", "family=meandiff", "robustness_directions=2")
-    assert code == 0, err
-    table = pd.read_parquet(tmp_path / "md" / "metrics.parquet")
+    table = trained(acts, tmp_path / "md", monkeypatch, capsys, "features=[z,gripper]", "family=meandiff")
     assert set(table["family"]) == {"meandiff"} and table["penalty"].isna().all()
     best = table.groupby("feature")[["r2", "balanced_accuracy"]].max()
     assert best.loc["z", "r2"] > 0.2 and best.loc["gripper", "balanced_accuracy"] > 0.6, best
