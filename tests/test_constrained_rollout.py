@@ -256,3 +256,25 @@ def test_bad_constraint_lists_on_the_command_line_are_one_line(tmp_path, constra
         lines = [line for line in res.stderr.splitlines() if line.strip() and "robosuite" not in line]
         assert res.returncode == 2 and lines == [f"error: {lines[0][7:]}"] and message in lines[0], res.stderr
         assert not any(tmp_path.iterdir())
+
+
+def test_a_held_gripper_is_kept_on_the_action_while_speed_is_pushed(probes):
+    from vlactl.rollout.constrained import ConstrainedAgent
+    from vlactl.rollout.constraints import parse_constraint
+    from vlactl.rollout.runner import steering
+    from vlactl.steering.steer import Constraint as ProbeBox
+
+    cfg = rollout_config(["model=random", "constraint=speed=low", "method=control", f"probes={probes}",
+                          "speed_threshold=0.2", "metres_per_unit=0.01", "layers=[expert.0]"])
+    plan = steering(cfg, parse_constraint(cfg.constraint))
+    assert {p.feature for p in plan.probes} == {"dx", "dy", "dz"}  # speed is pushed through the translation
+    assert {p.feature for p in plan.holds} == {"gripper_action"}
+    agent = ConstrainedAgent(tiny_policy("hybrid"), parse_constraint(cfg.constraint), plan)
+    agent._held = [ProbeBox(p, 0.0, 0.0, relative=True) for p in plan.holds]  # what reset() builds
+    chunk = np.zeros((5, 7))
+    chunk[:, 6] = -1.0  # open throughout: kept open, by the gripper-action probes, no longer held by reading alone
+    (kept,) = agent._gripper_kept(chunk, 3)
+    assert (kept.feature, kept.value) == ("gripper", "open") and kept.window > 3
+    assert all(b.probe.feature != "gripper_action" for b in agent._held_now)
+    chunk[2, 6] = 1.0  # the policy itself switches within the chunk: nothing kept, the reading hold stays
+    assert agent._gripper_kept(chunk, 3) == [] and agent._held_now == agent._held

@@ -21,9 +21,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import (Constraint, action_bound, action_quantity, as_constraints, box, prompted,
-                                       push_weights, reference)
+from vlactl.rollout.constraints import (GRIPPER_BOUND, Constraint, action_bound, action_quantity, as_constraints, box,
+                                       prompted, push_weights, reference)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -122,12 +124,14 @@ class ConstrainedAgent(VLAAgent):
         its window bounds its own quantity; the broken ones are searched in turn (KINDS order), the others' probes held
         at their shifts so far, and once more, from its shift so far, one that a later push broke."""
         plan, several = self.steering, len(self.constraints) > 1
-        active = [c for c in self.constraints if t < c.window]
-        bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels[c.feature], plan.metres_per_unit,
-                                          plan.barrier_decay, self.replan_every, plan.height_margin) for c in active}
+        named = [c for c in self.constraints if t < c.window]
         start = self.vla.sampling_state()
         actions = self.predict(obs)
         drawn = self.vla.sampling_state()
+        active = named + self._gripper_kept(actions, t)
+        bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels.get(c.feature, 0.0),
+                                          plan.metres_per_unit, plan.barrier_decay, self.replan_every,
+                                          plan.height_margin) for c in active}
         before = {c.feature: action_quantity(c, actions) for c in active}
         self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
         row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
@@ -142,12 +146,12 @@ class ConstrainedAgent(VLAAgent):
                 actions, shifts[c.feature], used, log = self._search(obs, c, bounds, quantity, shifts, active, start)
                 passes += used
                 kept[c.feature] = bounds[c.feature][0] <= action_quantity(c, actions) <= bounds[c.feature][1]
-            if not several:
+            if len(active) == 1:
                 break
         if log is not None:
             self.vla.set_sampling_state(drawn)
             row = {**row, **push_record(log, [c.feature for c in active] if several else None), "passes": passes}
-        for c in active:
+        for c in named:
             (lo, hi), after = bounds[c.feature], action_quantity(c, actions)
             suffix = f"_{c.feature}" if several else ""
             row.update({f"action_before{suffix}": before[c.feature], f"bound_lo{suffix}": lo,
@@ -208,6 +212,24 @@ class ConstrainedAgent(VLAAgent):
         return actions, shift, passes, log  # least-violating one
 
 
+    def _gripper_kept(self, actions, t: int) -> list:
+        """A held gripper read-out kept on the action itself: when the constraints leave the gripper alone and the
+        unsteered chunk commands it one way throughout (every command past +-0.5), a constraint keeping it there for
+        this re-plan, pushed by the gripper-action hold probes, which it takes over from the holds. A hold on the
+        probe's reading alone does not keep the command: pushing speed down at the expert closed the gripper at step 1
+        (median) with the gripper-action reading held (rollout, 2026-12-01)."""
+        probes = tuple(p for p in self.steering.holds if p.feature == "gripper_action")
+        if not probes or any(c.feature == "gripper" for c in self.constraints):
+            self._held_now = self._held
+            return []
+        command = np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, 6]
+        side = "closed" if command.min() >= GRIPPER_BOUND else "open" if command.max() <= -GRIPPER_BOUND else None
+        self._held_now = [b for b in self._held if b.probe.feature != "gripper_action"] if side else self._held
+        if side is None:
+            return []
+        self._probes["gripper"] = probes
+        return [Constraint("gripper", side, t + 1)]
+
     def _push_boxes(self, shifts: dict, active: list) -> list:
         """Relative boxes for the constraints' reading shifts: each probe shifted by the sum, over the constraints
         that push it, of their shift times its share (`push_weights`; height and speed both push dz), and the holds."""
@@ -216,7 +238,7 @@ class ConstrainedAgent(VLAAgent):
             for p in self._probes[c.feature]:
                 probe, shift = total.get((p.layer, p.feature), (p, 0.0))
                 total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * self._weights[c.feature][p.feature])
-        return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + self._held
+        return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + self._held_now
 
 
 def push_record(log: list[dict], features: list[str] | None = None) -> dict:
