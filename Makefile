@@ -91,6 +91,7 @@ PROBE_DEMOS ?= data/demos/libero_spatial_robust
 STEER_FEATURES ?= [dx,dy,dz,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
 STEER_FAMILIES ?= fit meandiff covariance
+CHOOSE_ARGS ?= frames=16 batch_size=16 targets=[-1,1]  # 16 frames x 2 pushes a unit: ~8 min a family on 2 busy cores
 comma := ,
 define fit_probes
 	$(BIN)/vlactl collect model=$(1) dataset=$(2) every=4 output_dir=$(3)/activations
@@ -98,7 +99,7 @@ define fit_probes
 	$(foreach f,$(STEER_FAMILIES),$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/steer-$(f) \
 	  features=$(STEER_FEATURES) family=$(f) $(STEER_PROBE_ARGS) $(4)
 	)
-	$(BIN)/vlactl controllability model=$(1) dataset=$(2) choose_into=$(3)/steer \
+	$(BIN)/vlactl controllability model=$(1) dataset=$(2) choose_into=$(3)/steer $(CHOOSE_ARGS) \
 	  probes=[$(subst $(eval) ,$(comma),$(foreach f,$(STEER_FAMILIES),$(3)/steer-$(f)))]
 endef
 define build_probes
