@@ -275,6 +275,12 @@ def test_a_held_gripper_is_kept_on_the_action_while_speed_is_pushed(probes):
     chunk[:, 6] = -1.0  # open throughout: kept open, by the gripper-action probes, no longer held by reading alone
     (kept,) = agent._gripper_kept(chunk, 3)
     assert (kept.feature, kept.value) == ("gripper", "open") and kept.window > 3
-    assert all(b.probe.feature != "gripper_action" for b in agent._held_now)
+    speed = parse_constraint(cfg.constraint)
+    agent._weights = {"speed": {"dx": 1.0, "dy": 0.0, "dz": 0.0}, "gripper": {"gripper_action": 1.0}}
+    grip = [b for b in agent._push_boxes({"speed": 0.1, "gripper": 0.0}, [speed, kept])
+            if b.probe.feature == "gripper_action"]
+    assert len(grip) == len(plan.holds) and not any(b is h for b in grip for h in agent._held)  # pushed, not held
     chunk[2, 6] = 1.0  # the policy itself switches within the chunk: nothing kept, the reading hold stays
-    assert agent._gripper_kept(chunk, 3) == [] and agent._held_now == agent._held
+    assert agent._gripper_kept(chunk, 3) == []
+    boxes = agent._push_boxes({"speed": 0.1}, [speed])
+    assert all(any(b is h for b in boxes) for h in agent._held)

@@ -87,6 +87,8 @@ class ConstrainedAgent(VLAAgent):
         # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature)
         self._probes = {c.feature: steering.probes if len(self.constraints) == 1 else
                         tuple(p for p in steering.probes if p.feature in c.action_features) for c in self.constraints}
+        if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
+            self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
 
     def reset(self, env, obs) -> None:
         super().reset(env, obs)
@@ -150,7 +152,7 @@ class ConstrainedAgent(VLAAgent):
                 break
         if log is not None:
             self.vla.set_sampling_state(drawn)
-            row = {**row, **push_record(log, [c.feature for c in active] if several else None), "passes": passes}
+            row = {**row, **push_record(log, [c.feature for c in named] if several else None), "passes": passes}
         for c in named:
             (lo, hi), after = bounds[c.feature], action_quantity(c, actions)
             suffix = f"_{c.feature}" if several else ""
@@ -211,34 +213,29 @@ class ConstrainedAgent(VLAAgent):
         actions, shift, log = best[1] if best is not None else last  # the best satisfying pass; else the last,
         return actions, shift, passes, log  # least-violating one
 
-
     def _gripper_kept(self, actions, t: int) -> list:
         """A held gripper read-out kept on the action itself: when the constraints leave the gripper alone and the
         unsteered chunk commands it one way throughout (every command past +-0.5), a constraint keeping it there for
         this re-plan, pushed by the gripper-action hold probes, which it takes over from the holds. A hold on the
         probe's reading alone does not keep the command: pushing speed down at the expert closed the gripper at step 1
         (median) with the gripper-action reading held (rollout, 2026-12-01)."""
-        probes = tuple(p for p in self.steering.holds if p.feature == "gripper_action")
-        if not probes or any(c.feature == "gripper" for c in self.constraints):
-            self._held_now = self._held
+        if not self._probes["gripper"] or any(c.feature == "gripper" for c in self.constraints):
             return []
         command = np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, 6]
         side = "closed" if command.min() >= GRIPPER_BOUND else "open" if command.max() <= -GRIPPER_BOUND else None
-        self._held_now = [b for b in self._held if b.probe.feature != "gripper_action"] if side else self._held
-        if side is None:
-            return []
-        self._probes["gripper"] = probes
-        return [Constraint("gripper", side, t + 1)]
+        return [] if side is None else [Constraint("gripper", side, t + 1)]
 
     def _push_boxes(self, shifts: dict, active: list) -> list:
         """Relative boxes for the constraints' reading shifts: each probe shifted by the sum, over the constraints
-        that push it, of their shift times its share (`push_weights`; height and speed both push dz), and the holds."""
+        that push it, of their shift times its share (`push_weights`; height and speed both push dz), and the holds
+        of the probes no constraint pushes."""
         total = {}
         for c in active:
             for p in self._probes[c.feature]:
                 probe, shift = total.get((p.layer, p.feature), (p, 0.0))
                 total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * self._weights[c.feature][p.feature])
-        return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + self._held_now
+        held = [b for b in self._held if (b.layer, b.probe.feature) not in total]  # a pushed probe is not held
+        return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + held
 
 
 def push_record(log: list[dict], features: list[str] | None = None) -> dict:
