@@ -15,7 +15,8 @@ import pandas as pd
 
 from vlactl.errors import UsageError
 from vlactl.io import atomic_write_parquet, ensure_writable_dir
-from vlactl.steering.controllability import CONTROLLABILITY_NAME, controllability_rows, metrics_digest
+from vlactl.steering.controllability import (CONTROLLABILITY_NAME, controllability_rows, controllability_score,
+                                             metrics_digest)
 from vlactl.steering.train_probes import METRICS_NAME, PROBE_PROVENANCE
 
 CHOICE_NAME = "choice.parquet"
@@ -34,15 +35,15 @@ def candidate_scores(runs: list[Path]) -> pd.DataFrame:
             raise UsageError(f"{str(run)!r} has no controllability table; run `vlactl controllability probes={run}`")
         measured = set(pd.read_parquet(run / CONTROLLABILITY_NAME, columns=["feature"])["feature"])
         features = measured if features is None else features & measured
-    rows = []
+    rows, families = [], {run: family_of(run) for run in runs}
     for feature in sorted(features or ()):
         for run in runs:
             table = controllability_rows(run, feature)
             if table is None:  # retrained since it was measured (a warning was printed)
                 raise UsageError(f"the controllability table of {str(run)!r} is out of date; re-run it")
-            score = (table["gain"].abs() * table["r2"]).fillna(0.0)
+            score = controllability_score(table)
             best = table.loc[score.idxmax()]
-            rows.append({"feature": feature, "run": str(run), "family": family_of(run), "layer": best["layer"],
+            rows.append({"feature": feature, "run": str(run), "family": families[run], "layer": best["layer"],
                          "gain": float(best["gain"]), "r2": float(best["r2"]), "score": float(score.max())})
     if not rows:
         raise UsageError(f"no feature is measured in every candidate run ({', '.join(map(str, runs))})")

@@ -67,10 +67,15 @@ def controllability_rows(run: Path, feature: str) -> pd.DataFrame | None:
     return rows if len(rows) else None
 
 
+def controllability_score(rows: pd.DataFrame) -> pd.Series:
+    """How far and how consistently each row's push moves the predicted feature: |gain| x R² (0 where nothing moved)."""
+    return (rows["gain"].abs() * rows["r2"]).fillna(0.0)
+
+
 def most_controllable(rows: pd.DataFrame) -> str | None:
-    """The layer or group whose push moves the predicted feature most and most consistently (largest |gain| x R²);
-    None when nothing moved it."""
-    score = (rows["gain"].abs() * rows["r2"]).fillna(0.0)
+    """The layer or group whose push moves the predicted feature most and most consistently (largest
+    `controllability_score`); None when nothing moved it."""
+    score = controllability_score(rows)
     return None if not (score > 0).any() else str(rows.loc[score.idxmax(), "layer"])
 
 
