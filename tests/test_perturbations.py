@@ -6,7 +6,7 @@ import pytest
 
 from vlactl.env.perturbations import Perturbation, parse_perturbation, random_perturbation
 from vlactl.errors import UsageError
-from vlactl.rollout.constraints import action_bound, filter_action, parse_constraint
+from vlactl.rollout.constraints import action_bound, action_quantity, filter_action, parse_constraint
 from vlactl.rollout.runner import rollout_config, run_rollout
 
 
@@ -65,6 +65,29 @@ def test_height_barrier_lets_the_hand_approach_the_start_height_by_the_decay_rat
     out = filter_action(high, a, 1.01, 1.0, 0.01, 0.5)
     assert out[2] == pytest.approx(-0.5) and np.array_equal(np.delete(out, 2), np.delete(a, 2))
     assert np.array_equal(filter_action(high, a * [1, 1, -1, 1, 1, 1, 1], 1.02, 1.0, 0.01), a * [1, 1, -1, 1, 1, 1, 1])
+
+
+@pytest.mark.parametrize("value", ["high", "low"])
+def test_height_quantity_keeps_the_barrier_at_every_step_of_the_chunk(value):
+    """box=action: a chunk is inside its height bound exactly when the hand, moved s per unit of dz each step, keeps
+    h_j >= (1 - decay)^j h_0 at every step j of it, not only on average (a mean can hide an early dip)."""
+    constraint, rng = parse_constraint(f"height={value}"), np.random.default_rng(0)
+    sign, s, z0, decay = (1 if value == "high" else -1), 0.0127, 1.0, 0.5
+    agree = 0
+    for _ in range(400):
+        z = z0 + sign * rng.uniform(-0.01, 0.05)
+        chunk = np.zeros((5, 7))
+        chunk[:, 2] = rng.normal(0.0, 1.0, 5)
+        lo, hi = action_bound(constraint, z, z0, s, decay, steps=5)
+        q = action_quantity(constraint, chunk, decay)
+        heights = sign * (z + s * np.cumsum(chunk[:, 2]) - z0)
+        kept = bool(np.all(heights >= (1 - decay) ** np.arange(1, 6) * sign * (z - z0) - 1e-12))
+        agree += (lo <= q <= hi) == kept
+    assert agree == 400
+    early_dip = np.zeros((5, 7))
+    early_dip[:, 2] = [-2.0, 0.5, 0.5, 0.5, 0.5] if value == "high" else [2.0, -0.5, -0.5, -0.5, -0.5]
+    lo, hi = action_bound(constraint, z0 + sign * 0.02, z0, s, decay, steps=5)
+    assert lo <= early_dip[:, 2].mean() <= hi and not lo <= action_quantity(constraint, early_dip, decay) <= hi
 
 
 def test_speed_filter_scales_the_translation_along_its_direction():

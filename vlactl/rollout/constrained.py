@@ -134,27 +134,27 @@ class ConstrainedAgent(VLAAgent):
         bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels.get(c.feature, 0.0),
                                           plan.metres_per_unit, plan.barrier_decay, self.replan_every,
                                           plan.height_margin) for c in active}
-        before = {c.feature: action_quantity(c, actions) for c in active}
+        before = {c.feature: self._quantity(c, actions) for c in active}
         self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
         row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
         shifts = {c.feature: 0.0 for c in active}
         log, passes, kept = None, 0, {}
         for again in (False, True):  # the second sweep: only constraints a later push broke
             for c in active:
-                (lo, hi), quantity = bounds[c.feature], action_quantity(c, actions)
+                (lo, hi), quantity = bounds[c.feature], self._quantity(c, actions)
                 if lo <= quantity <= hi or (again and not kept[c.feature]):
                     kept.setdefault(c.feature, lo <= quantity <= hi)
                     continue
                 actions, shifts[c.feature], used, log = self._search(obs, c, bounds, quantity, shifts, active, start)
                 passes += used
-                kept[c.feature] = bounds[c.feature][0] <= action_quantity(c, actions) <= bounds[c.feature][1]
+                kept[c.feature] = bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
             if len(active) == 1:
                 break
         if log is not None:
             self.vla.set_sampling_state(drawn)
             row = {**row, **push_record(log, [c.feature for c in named] if several else None), "passes": passes}
         for c in named:
-            (lo, hi), after = bounds[c.feature], action_quantity(c, actions)
+            (lo, hi), after = bounds[c.feature], self._quantity(c, actions)
             suffix = f"_{c.feature}" if several else ""
             row.update({f"action_before{suffix}": before[c.feature], f"bound_lo{suffix}": lo,
                         f"bound_hi{suffix}": hi, f"action_after{suffix}": after})
@@ -184,9 +184,9 @@ class ConstrainedAgent(VLAAgent):
             boxes = self._push_boxes({**shifts, constraint.feature: shift}, active)
             with Steerer(self.vla, boxes, method="control") as steerer:
                 actions = self.predict(obs)
-            quantity, passes, last = action_quantity(constraint, actions), passes + 1, (actions, shift, steerer.log)
+            quantity, passes, last = self._quantity(constraint, actions), passes + 1, (actions, shift, steerer.log)
             if lo <= quantity <= hi:
-                broken = sum(not bounds[c.feature][0] <= action_quantity(c, actions) <= bounds[c.feature][1]
+                broken = sum(not bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
                              for c in others)
                 if best is None or (broken, abs(quantity - target)) < best[0]:
                     best = ((broken, abs(quantity - target)), last)
@@ -212,6 +212,9 @@ class ConstrainedAgent(VLAAgent):
             shift = guess if min(s0, s1) + 0.1 * width < guess < max(s0, s1) - 0.1 * width else (s0 + s1) / 2
         actions, shift, log = best[1] if best is not None else last  # the best satisfying pass; else the last,
         return actions, shift, passes, log  # least-violating one
+
+    def _quantity(self, constraint: Constraint, actions) -> float:
+        return action_quantity(constraint, actions, self.steering.barrier_decay)
 
     def _gripper_kept(self, actions, t: int) -> list:
         """A held gripper read-out kept on the action itself: when the constraints leave the gripper alone and the

@@ -218,17 +218,24 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
     return (norm, math.inf) if constraint.upper else (0.0, norm)
 
 
-def action_quantity(constraint: Constraint, actions):
+def action_quantity(constraint: Constraint, actions, decay: float = BARRIER_DECAY):
     """What `action_bound` bounds, over the actions about to be executed ([k, 7]): the gripper command least on the
-    wanted side (every one of them is judged, so every one must snap to close / open), the mean dz, or the mean
-    translation norm."""
+    wanted side (every one of them is judged, so every one must snap to close / open), the mean translation norm,
+    or for height the barrier's worst step: every step j <= k of the chunk must keep the barrier (the hand is judged
+    at each, and a chunk whose mean dz keeps it can dip past the bound on its way), i.e. for high
+    mean(dz[:j]) >= -r_j (z - z0) with r_j = (1 - (1 - decay)^j) / (j s); scaled by r_k / r_j each step's mean
+    compares with the k-step bound of `action_bound`, so q is the least (high) / largest (low) of those scaled
+    prefix means, and the chunk's mean dz when the prefixes keep pace with it."""
     import numpy as np
 
     actions = np.asarray(actions, dtype=np.float64).reshape(-1, 7)
     if constraint.feature == "gripper":
         return float(actions[:, 6].min() if constraint.upper else actions[:, 6].max())
     if constraint.feature == "height":
-        return float(actions[:, 2].mean())
+        j = np.arange(1, len(actions) + 1)
+        reach = (1 - (1 - decay) ** j) / j  # r_j s
+        scaled = np.cumsum(actions[:, 2]) / j * (reach[-1] / reach)
+        return float(scaled.min() if constraint.upper else scaled.max())
     return float(np.linalg.norm(actions[:, :3], axis=1).mean())
 
 
