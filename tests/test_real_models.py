@@ -10,6 +10,7 @@ from synthetic_demos import observation, write_synthetic_demos
 
 from vlactl.config import load_policy_stage_config
 from vlactl.errors import UsageError
+from vlactl.models.base import PolicyInput
 from vlactl.models.hooks import capture, intervene
 from vlactl.models.openvla import bin_centres, decode_actions, to_libero_gripper
 from vlactl.models.pi05 import openpi_transformers_installed
@@ -64,6 +65,31 @@ def test_smolvla_names_both_stacks_and_predicts_lerobot_chunks(smolvla_checkpoin
     chunk = seeded_chunk(vla, obs())
     assert chunk.shape == (2, 4, 7) and torch.isfinite(chunk).all()
     assert torch.equal(chunk, seeded_chunk(vla, obs()))
+
+
+def rows_equal_alone(vla):
+    """A server's batch (`predict_rows`): each row gets the chunk and the noise stream it would get predicted alone
+    (to rounding: a bfloat16 forward rounds a batch of two otherwise than a batch of one)."""
+    atol = 1e-5 if next(vla.policy.parameters()).dtype == torch.float32 else 5e-2
+    o = obs()
+    states = []
+    for seed in (3, 4):
+        torch.manual_seed(seed)
+        states.append(vla.sampling_state())
+    chunks, after = vla.predict_rows(o, states)
+    for i, state in enumerate(states):
+        vla.set_sampling_state(state)
+        alone = vla.predict_action_chunk(observation_row(o, i))
+        assert torch.allclose(chunks[i : i + 1], alone, atol=atol) and torch.equal(after[i], vla.sampling_state())
+    assert not torch.allclose(chunks[0], chunks[1])
+
+
+def observation_row(o, i):
+    return PolicyInput({k: v[i : i + 1] for k, v in o.images.items()}, o.state[i : i + 1], o.instruction[i : i + 1])
+
+
+def test_smolvla_batches_a_servers_rows_in_one_forward_as_each_alone(smolvla_checkpoint):
+    rows_equal_alone(load_smolvla(smolvla_checkpoint))
 
 
 def test_smolvla_read_out_sets_follow_the_prefix_it_builds(smolvla_checkpoint):
@@ -155,6 +181,10 @@ def test_pi05_loads_its_weights_names_both_stacks_and_predicts_lerobot_chunks(pi
     chunk = seeded_chunk(pi05, obs())
     assert chunk.shape == (2, 4, 7) and chunk.dtype == torch.float32 and torch.isfinite(chunk).all()
     assert torch.equal(chunk, seeded_chunk(pi05, obs()))
+
+
+def test_pi05_batches_a_servers_rows_in_one_forward_as_each_alone(pi05):
+    rows_equal_alone(pi05)
 
 
 def test_pi05_runs_the_branch_gemma_in_the_checkpoint_dtype(pi05):

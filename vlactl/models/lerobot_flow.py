@@ -146,6 +146,20 @@ class LeRobotFlowVLA(StackedLayers):
         return self.postprocessor(actions)[..., :7].float().cpu()
 
     @torch.no_grad()
+    def predict_rows(self, obs: PolicyInput, states: list) -> tuple[torch.Tensor, list]:
+        """A policy server's batch in one forward: row i's initial noise drawn from `states[i]` as a batch of one
+        draws it (the flow's own `sample_noise`, the first draw of a prediction), all rows' noise then given to
+        LeRobot's sampler together (`noise=`, which SmolVLA and π0.5 take)."""
+        shape = (1, self.chunk_size, int(self.policy.config.max_action_dim))
+        noise, after = [], []
+        for state in states:
+            self.set_sampling_state(state)
+            noise.append(self._flow().sample_noise(shape, self.device))
+            after.append(self.sampling_state())
+        actions = self.policy.predict_action_chunk(self._batch(obs), noise=torch.cat(noise))
+        return self.postprocessor(actions)[..., :7].float().cpu(), after
+
+    @torch.no_grad()
     def encode(self, obs: PolicyInput) -> None:
         """The prefix, then one expert pass at t = 1 from a fixed noise, so expert readings are reproducible."""
         config = self.policy.config
