@@ -12,6 +12,7 @@ from vlactl.cli import app
 from vlactl.config import load_config
 from vlactl.errors import UsageError
 from vlactl.models.registry import load_policy
+from vlactl.training.average import run_average_policies
 from vlactl.training.train_policy import STATE_FILE, run_train_policy
 
 TINY = {
@@ -105,3 +106,31 @@ def test_fine_tuning_starts_from_the_checkpoint_and_refuses_another_architecture
     with pytest.raises(UsageError, match="different hybrid architecture"):
         run_train_policy(load_config("train_policy", overrides(demos, tmp_path / "other", "hybrid", 1,
                                                                f"init_from={source}", "model.layers=3")))
+
+
+def test_average_policies_writes_the_mean_of_fine_tunes_and_refuses_other_starts(demos, tmp_path):
+    """A model soup: two fine-tunes of one start average weight by weight into a checkpoint that loads and predicts;
+    a checkpoint with another normalisation, or a single one, is a one-line error and writes nothing."""
+    start, other = tmp_path / "start", tmp_path / "other"
+    run_train_policy(load_config("train_policy", overrides(demos, start, steps=2)))
+    tunes = [tmp_path / f"tune{seed}" for seed in (1, 2)]
+    for seed, tune in zip((1, 2), tunes):
+        run_train_policy(load_config("train_policy", overrides(demos, tune, "hybrid", 2, f"init_from={start}",
+                                                               f"seed={seed}", "lr=1e-2")))
+    soup = tmp_path / "soup"
+    result = CliRunner().invoke(app, ["average-policies", f"policies=[{tunes[0]},{tunes[1]}]", f"output_dir={soup}"])
+    assert result.exit_code == 0, result.output
+    weights = [load_file(str(t / "checkpoint" / "model.safetensors")) for t in tunes]
+    averaged = load_file(str(soup / "checkpoint" / "model.safetensors"))
+    assert any(not torch.equal(weights[0][k], weights[1][k]) for k in averaged)
+    assert all(torch.allclose(averaged[k], (weights[0][k] + weights[1][k]) / 2) for k in averaged)
+    provenance = json.loads((soup / "checkpoint" / "provenance.json").read_text())
+    assert [p["checkpoint"] for p in provenance["averaged"]] == [str(t) for t in tunes]
+    assert load_policy(str(soup)).predict_action_chunk(observation()).shape[0] == 2
+    run_train_policy(load_config("train_policy", overrides(demos, other, "hybrid", 1)))
+    (other / "checkpoint" / "normalization.json").write_text("{}")  # as if fitted on other demonstrations
+    for given, message in (([tunes[0], other], "differs from .* in normalization.json"), ([tunes[0]], "two or more")):
+        with pytest.raises(UsageError, match=message):
+            run_average_policies(load_config("average_policies", [f"policies=[{','.join(map(str, given))}]",
+                                                                  f"output_dir={tmp_path / 'refused'}"]))
+        assert not (tmp_path / "refused" / "checkpoint").exists()

@@ -147,6 +147,15 @@ def train_policy(
     typer.echo(f"checkpoint: {run_train_policy(cfg)}")
 
 
+@app.command("average-policies")
+def average_policies(overrides: Optional[List[str]] = OVERRIDES):
+    """Average the weights of checkpoints fine-tuned from one start (a "model soup") into one checkpoint."""
+    from vlactl.config import load_config
+    from vlactl.training.average import run_average_policies
+
+    typer.echo(f"checkpoint: {run_average_policies(load_config('average_policies', overrides))}")
+
+
 @app.command()
 def collect(
     overrides: Optional[List[str]] = OVERRIDES,
