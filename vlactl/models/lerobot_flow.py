@@ -142,8 +142,7 @@ class LeRobotFlowVLA(StackedLayers):
 
     @torch.no_grad()
     def predict_action_chunk(self, obs: PolicyInput) -> torch.Tensor:
-        actions = self.policy.predict_action_chunk(self._batch(obs))
-        return self.postprocessor(actions)[..., :7].float().cpu()
+        return self._libero_actions(self.policy.predict_action_chunk(self._batch(obs)))
 
     @torch.no_grad()
     def predict_rows(self, obs: PolicyInput, states: list) -> tuple[torch.Tensor, list]:
@@ -157,7 +156,11 @@ class LeRobotFlowVLA(StackedLayers):
             noise.append(self._flow().sample_noise(shape, self.device))
             after.append(self.sampling_state())
         actions = self.policy.predict_action_chunk(self._batch(obs), noise=torch.cat(noise))
-        return self.postprocessor(actions)[..., :7].float().cpu(), after
+        return self._libero_actions(actions), after
+
+    def _libero_actions(self, actions: torch.Tensor) -> torch.Tensor:
+        """LeRobot's chunk in LIBERO's 7-D action space, on the CPU."""
+        return self.postprocessor(actions)[..., :7].float().cpu()
 
     @torch.no_grad()
     def encode(self, obs: PolicyInput) -> None:

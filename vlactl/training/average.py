@@ -10,7 +10,6 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-CHECKPOINT_DIR = "checkpoint"
 PROVENANCE = "provenance.json"
 
 
@@ -25,7 +24,7 @@ def run_average_policies(cfg: DictConfig) -> Path:
     from vlactl.errors import UsageError
     from vlactl.io import atomic_dir, atomic_write_json, ensure_writable_dir
     from vlactl.models.parts.policy import WEIGHTS_FILE
-    from vlactl.models.registry import resolve_checkpoint, weights_fingerprint
+    from vlactl.models.registry import CHECKPOINT_DIR, resolve_checkpoint, weights_fingerprint
     from vlactl.training.provenance import environment, git_commit
 
     names = [str(p) for p in (cfg.policies or [])]
