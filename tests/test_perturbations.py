@@ -6,7 +6,7 @@ import pytest
 
 from vlactl.env.perturbations import Perturbation, parse_perturbation, random_perturbation
 from vlactl.errors import UsageError
-from vlactl.rollout.constraints import action_bound, action_quantity, filter_action, parse_constraint
+from vlactl.rollout.constraints import action_bound, action_quantity, filter_action, parse_constraint, parse_constraints
 from vlactl.rollout.runner import rollout_config, run_rollout
 
 
@@ -144,3 +144,41 @@ def test_height_margin_moves_the_barrier_inside_the_allowed_side():
     assert action_bound(high, 1.0, 1.0, 0.01, 0.5, margin=0.01)[0] == pytest.approx(0.5)  # at z0: must rise
     assert action_bound(low, 1.0, 1.0, 0.01, 0.5, margin=0.01)[1] == pytest.approx(-0.5)  # at z0: must sink
     assert action_bound(high, 1.03, 1.0, 0.01, 0.5, margin=0.01)[0] == pytest.approx(-1.0)
+
+
+def test_pause_stops_the_arm_only_where_a_pausable_constraint_binds():
+    from vlactl.rollout.constraints import filter_actions
+
+    high, low = parse_constraint("height=high"), parse_constraint("speed=low")
+    down = np.array([0.5, -0.4, -1.0, 0.1, 0.2, 0.0, -1.0])  # on its way across and down: breaks the barrier
+    paused = filter_actions([high], down, 1.0, 1.0, 0.2, 0.01, 0.5, margin=0.01, pause=True)
+    assert np.allclose(paused[[0, 1, 3, 4, 5]], 0.0) and paused[6] == -1.0
+    assert paused[2] == pytest.approx(action_bound(high, 1.0, 1.0, 0.01, 0.5, margin=0.01)[0])  # the rise it asks
+    above = filter_actions([high], down, 1.015, 1.0, 0.2, 0.01, 0.5, margin=0.01, pause=True)
+    assert np.allclose(above[:6], 0.0)  # above the level nothing need rise: a full stop
+    across = np.array([0.5, -0.4, 0.2, 0.0, 0.0, 0.0, 1.0])  # keeps the barrier: untouched
+    assert np.array_equal(filter_actions([high], across, 1.0, 1.0, 0.2, 0.01, pause=True), across)
+    fast = filter_actions([low], down, 1.0, 1.0, 0.2, 0.01, pause=True)
+    assert np.allclose(fast[:6], 0.0)  # speed=low: stopped, not scaled
+    closed = filter_actions(parse_constraints("gripper=closed,height=high"), down, 1.0, 1.0, 0.2, 0.01, pause=True)
+    assert np.allclose(closed[[0, 1]], 0.0) and closed[6] == 1.0  # the gripper still forced
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["constraint=height=high", "method=prompt"], "pause=true needs method=filter or method=control with box=action"),
+    (["constraint=gripper=open", "method=filter"], "no constraint in constraint=gripper=open asks for"),
+    (["constraint=[height=high,speed=high]", "method=filter"], "cannot go with speed=high"),
+])
+def test_bad_pause_settings_fail_before_any_worker(tmp_path, extra, message):
+    with pytest.raises(UsageError, match=message):
+        run(tmp_path, "pause=true", "metres_per_unit=0.012", "speed_threshold=0.2", *extra)
+    assert not any(tmp_path.iterdir())
+
+
+def test_filter_pause_keeps_the_hand_still_and_up_through_the_window(tmp_path):
+    run(tmp_path, "constraint=height=high", "method=filter", "pause=true", "window=4", "metres_per_unit=0.012",
+        "run_name=paused")
+    steps = pd.read_parquet(tmp_path / "paused" / "steps.parquet")
+    window = steps[steps["in_window"]]
+    assert (window["z"] >= window["z"].iloc[0] - 1e-3).all()
+    assert np.ptp(window[["x", "y"]].to_numpy(), axis=0).max() < 0.01  # it does not move on across

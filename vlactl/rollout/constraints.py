@@ -275,18 +275,47 @@ def filter_action(constraint: Constraint, action, z: float, level: float, metres
     return out
 
 
+def pausable(constraint: Constraint) -> bool:
+    """Whether stopping the arm satisfies the constraint: height either way (a still hand keeps its side of the
+    level), speed=low (a still hand is slow)."""
+    return constraint.feature == "height" or constraint.name == "speed=low"
+
+
+def pause_action(action, height_bound: tuple[float, float] | None = None):
+    """The arm stopped: translation and rotation commands zero, except the dz nearest zero that the height barrier
+    allows (a rise while the hand is below the level), the gripper command as given. What `pause` does instead of the
+    smallest change of the bounded quantity when a pausable constraint binds: measured, a hand held still for the
+    window keeps the task, a hand kept up by dz alone moves on across and misses the grasp (docs/steering.md)."""
+    import numpy as np
+
+    out = np.array(action, dtype=np.float64)
+    out[:6] = 0.0
+    if height_bound is not None:
+        out[2] = float(np.clip(0.0, *height_bound))
+    return out
+
+
 def filter_actions(constraints, action, z: float, start_z: float, speed_threshold: float, metres_per_unit: float,
-                   decay: float = BARRIER_DECAY, margin: float = 0.0):
+                   decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False):
     """`filter_action` for several constraints at once. The gripper command is forced apart from the translation.
     Height and speed both bound the translation: the result is the one nearest the action (L2) that keeps dz in the
     barrier and the norm in the speed bound, among the speed filter alone, the height filter alone, and dz clipped
     with (dx, dy) scaled to the speed bound (for speed=low, the exact projection onto the feasible set). When no
     translation satisfies both (speed=low below the rise the barrier asks for), the height barrier wins: dz clipped,
-    (dx, dy) as near the speed bound as they can get (zero)."""
+    (dx, dy) as near the speed bound as they can get (zero).
+    With `pause`, an action that breaks a `pausable` constraint's bound is replaced by `pause_action` (the gripper
+    still forced by a gripper constraint)."""
     import numpy as np
 
     constraints = as_constraints(constraints)
     by_feature = {c.feature: c for c in constraints}
+    if pause:
+        bounds = {c.feature: action_bound(c, z, reference(c, start_z, speed_threshold), metres_per_unit, decay,
+                                          margin=margin) for c in constraints if pausable(c)}
+        if any(not lo <= action_quantity(by_feature[f], action, decay) <= hi for f, (lo, hi) in bounds.items()):
+            out = pause_action(action, bounds.get("height"))
+            return filter_action(by_feature["gripper"], out, z, 0.0, metres_per_unit) if "gripper" in by_feature \
+                else out
     if len(constraints) == 1 or not {"height", "speed"} <= set(by_feature):
         out = np.array(action, dtype=np.float64)
         for c in constraints:
@@ -326,10 +355,10 @@ def filter_actions(constraints, action, z: float, start_z: float, speed_threshol
 
 
 def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
-                decay: float = BARRIER_DECAY, margin: float = 0.0):
+                decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False):
     """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window (several
-    constraints: each over its own window, together where windows overlap, `filter_actions`); the start height is
-    the hand's z at the first policy step."""
+    constraints: each over its own window, together where windows overlap, `filter_actions`, with `pause` stopping
+    the arm where a pausable constraint binds); the start height is the hand's z at the first policy step."""
     constraints = as_constraints(constraint)
     start = {}
 
@@ -339,7 +368,8 @@ def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
         active = [c for c in constraints if t < c.window]
         if not active:
             return action
-        return filter_actions(active, action, z, start["z"], speed_threshold, metres_per_unit, decay, margin)
+        return filter_actions(active, action, z, start["z"], speed_threshold, metres_per_unit, decay, margin,
+                              pause)
 
     return hook
 

@@ -26,19 +26,19 @@ from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
 from vlactl.rollout.constraints import (BOXES, START_GRIPPER, as_constraints, constraint_name, held_by_default,
-                                       parse_constraints, start_gripper)
+                                       parse_constraints, pausable, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
                  "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
-                 "perturb_steps", "perturb_size", "box", "passes", "height_margin")
+                 "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause")
 SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
-              "box": "state", "passes": 3, "height_margin": 0.0}
+              "box": "state", "passes": 3, "height_margin": 0.0, "pause": False}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -90,6 +90,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         raise UsageError(f"barrier_decay must be in (0, 1], got {cfg.barrier_decay}")
     if bounds_actions and not 0 <= float(cfg.height_margin) <= 0.1:
         raise UsageError(f"height_margin must be in [0, 0.1] m, got {cfg.height_margin}")
+    if cfg.pause:
+        _check_pause(cfg, constraints, bounds_actions)
     run = probes_run(cfg) if cfg.method in STEERING else None
     if run is not None:
         _check_probe_weights(run, str(cfg.model))
@@ -115,7 +117,21 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
                     metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
-                    height_margin=float(cfg.height_margin), passes=int(cfg.passes))
+                    height_margin=float(cfg.height_margin), passes=int(cfg.passes), pause=bool(cfg.pause))
+
+
+def _check_pause(cfg: DictConfig, constraints: tuple, bounds_actions: bool) -> None:
+    """pause stops the arm: it needs a bound on the action (filter, control with box=action), a constraint a still
+    arm satisfies (height, speed=low), and none a still arm breaks (speed=high)."""
+    name = constraint_name(constraints)
+    if not bounds_actions:
+        raise UsageError(f"pause=true needs method=filter or method=control with box=action, not method={cfg.method}"
+                         + (" box=state" if cfg.method == "control" else ""))
+    if not any(pausable(c) for c in constraints):
+        raise UsageError(f"pause=true stops the arm, which no constraint in constraint={name} asks for; it takes "
+                         f"height=low|high or speed=low")
+    if any(c.name == "speed=high" for c in constraints):
+        raise UsageError(f"pause=true cannot go with speed=high (constraint={name}): a stopped arm is not fast")
 
 
 def steered_features(constraint, box: str, method: str) -> tuple[str, ...]:
@@ -353,7 +369,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     head = {"suite": cfg.suite, "model": str(cfg.model), "policy": policy, "constraint": str(cfg.constraint),
             "method": cfg.method, "start_gripper": gripper,
             "steered_layers": list(dict.fromkeys(p.layer for p in plan.probes)),
-            "held": sorted({p.feature for p in plan.holds}),
+            "held": sorted({p.feature for p in plan.holds}), "pause": plan.pause,
             "perturbation": perturbation.name if perturbation else "none"}
     if len(constraint) > 1:  # each constraint with its window and layers; _write_tables adds its satisfaction
         head["constraints"] = {c.name: {"window": c.window, "steered_layers": [

@@ -130,7 +130,7 @@ def episode_hooks(spec: RunSpec, constraint) -> list:
     plan = spec.steering
     if plan.method == "filter":
         hooks.append(filter_hook(constraint, plan.speed_threshold, plan.metres_per_unit, plan.barrier_decay,
-                                 plan.height_margin))
+                                 plan.height_margin, plan.pause))
     if spec.perturbation is not None:
         hooks.append(spec.perturbation.hook())
     return hooks
