@@ -176,15 +176,6 @@ def test_action_boxes_push_only_when_the_prediction_breaks_the_bound(probes, tmp
         assert steps["bound_lo"].iloc[0] == pytest.approx(0.0)
 
 
-def test_pause_pushes_towards_a_stop_only_where_the_barrier_breaks(probes, tmp_path):
-    summary = rollout(tmp_path, "method=control", f"probes={probes}", "constraint=height=high", "layers=[expert.0]",
-                      "metres_per_unit=0.012", "pause=true", "run_name=run")  # at z0 the barrier asks for a rise
-    steps = pd.read_parquet(tmp_path / "run" / "steps.parquet").dropna(subset=["bound_lo"])
-    broken = (steps["action_before"] < steps["bound_lo"]) | (steps["action_before"] > steps["bound_hi"])
-    assert broken.any() and (steps["paused"] == broken).all() and summary["pause"] is True
-    assert (steps["passes"][broken] >= 2).all()  # the barrier's search and the stop's at least
-
-
 # --- several constraints at once ----------------------------------------------------------------------------------
 
 BOTH = ["constraint=[speed=low,height=high]", "metres_per_unit=0.012", "speed_threshold=0.02", "height_margin=0"]

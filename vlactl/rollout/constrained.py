@@ -25,7 +25,7 @@ import numpy as np
 
 from vlactl.rollout.agents import VLAAgent
 from vlactl.rollout.constraints import (GRIPPER_BOUND, Constraint, action_bound, action_quantity, as_constraints, box,
-                                       pausable, prompted, push_weights, reference)
+                                       prompted, push_weights, reference)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -36,18 +36,14 @@ STEERING = ("control", "alpha", "meandiff")
 # step): its summed norm and the share of those forwards it acted in.
 # box=action adds the bounded action quantity before and after the push, its bound at that re-plan, and the number of
 # steered re-predictions it took.
-# With pause, `paused` says the re-plan was pushed towards a stop.
 READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share",
-                   "action_before", "action_after", "bound_lo", "bound_hi", "passes", "paused")
+                   "action_before", "action_after", "bound_lo", "bound_hi", "passes")
 # Under several constraints, the columns of each constraint get its feature as a suffix (`bound_lo_height`).
 PER_CONSTRAINT = ("reading_before", "reading_after", "action_before", "action_after", "bound_lo", "bound_hi")
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
 FIRST_GAIN = 0.1  # the search's first reading shift per action unit of the quantity's distance to the target
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
              # units): the minimal push puts it at the bound, not wherever a saturating push lands
-PAUSE_SPEED = 0.1  # pause: the mean translation norm a paused chunk may keep beyond the barrier's rise (action units;
-                   # ~1.3 mm a step on LIBERO, a fifth of a typical command)
-TRANSLATION = ("dx", "dy", "dz")
 
 
 @dataclass(frozen=True)
@@ -67,7 +63,7 @@ class Steering:
     passes: int = 5  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
     hold_tolerance: float = 0.0
-    pause: bool = False  # filter, box=action: stop the arm where a pausable constraint binds (`pause_action`)
+    pause: bool = False  # filter: stop the arm where a pausable constraint binds (`pause_action`)
 
 
 def reading_columns(constraints) -> tuple[str, ...]:
@@ -94,8 +90,6 @@ class ConstrainedAgent(VLAAgent):
                         tuple(p for p in steering.probes if p.feature in c.action_features) for c in self.constraints}
         if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
             self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
-        if steering.pause and "speed" not in self._probes:  # a pause slows the whole translation (`_pause`)
-            self._probes["speed"] = tuple(p for p in (*steering.probes, *steering.holds) if p.feature in TRANSLATION)
 
     def reset(self, env, obs) -> None:
         super().reset(env, obs)
@@ -142,10 +136,8 @@ class ConstrainedAgent(VLAAgent):
                                           plan.metres_per_unit, plan.barrier_decay, self.replan_every,
                                           plan.height_margin) for c in active}
         before = {c.feature: self._quantity(c, actions) for c in active}
-        paused = plan.pause and self._pause(active, bounds, actions, t)
         self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
-        row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0,
-               "paused": paused}
+        row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
         shifts = {c.feature: 0.0 for c in active}
         log, passes, kept = None, 0, {}
         for again in (False, True):  # the second sweep: only constraints a later push broke
@@ -175,7 +167,8 @@ class ConstrainedAgent(VLAAgent):
         active constraint): a bracketing search on its probes' reading shift from its shift so far, every pass
         predicted again from the same sampling state `start`; the other active constraints' probes keep their
         `shifts` (relative boxes), the holds their readings. Of the passes inside its bound, the one that breaks the
-        fewest other bounds, then nearest the target, is taken. Returns (actions, shift, passes, log)."""
+        fewest other bounds, then nearest the target, is taken; if none is, the one nearest its bound. Returns
+        (actions, shift, passes, log)."""
         plan = self.steering
         lo, hi = bounds[constraint.feature]
         others = [c for c in active if c is not constraint]
@@ -194,11 +187,11 @@ class ConstrainedAgent(VLAAgent):
             with Steerer(self.vla, boxes, method="control") as steerer:
                 actions = self.predict(obs)
             quantity, passes, last = self._quantity(constraint, actions), passes + 1, (actions, shift, steerer.log)
-            if lo <= quantity <= hi:
-                broken = sum(not bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
-                             for c in others)
-                if best is None or (broken, abs(quantity - target)) < best[0]:
-                    best = ((broken, abs(quantity - target)), last)
+            broken = sum(not bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
+                         for c in others)
+            rank = (max(lo - quantity, quantity - hi, 0.0), broken, abs(quantity - target))
+            if best is None or rank < best[0]:
+                best = (rank, last)
             if accept[0] <= quantity <= accept[1]:
                 break
             miss = quantity - target
@@ -219,23 +212,8 @@ class ConstrainedAgent(VLAAgent):
             guess = s0 - m0 * (s1 - s0) / (m1 - m0)  # false position; bisection where it would hug an end
             width = abs(s1 - s0)
             shift = guess if min(s0, s1) + 0.1 * width < guess < max(s0, s1) - 0.1 * width else (s0 + s1) / 2
-        actions, shift, log = best[1] if best is not None else last  # the best satisfying pass; else the last,
-        return actions, shift, passes, log  # least-violating one
-
-    def _pause(self, active: list, bounds: dict, actions, t: int) -> bool:
-        """With pause, when the unsteered chunk breaks a pausable constraint's bound: the push aims at a stop as
-        well, a translation norm of at most the barrier's rise (0 unless the hand must climb back to the level) plus
-        `PAUSE_SPEED`, pushed along the translation's own direction like speed=low (a stand-in speed constraint when
-        none is named), so the hand does not move on across while it is kept up. Changes `active` and `bounds`."""
-        broken = [c for c in active if pausable(c) and not bounds[c.feature][0] <= self._quantity(c, actions)
-                  <= bounds[c.feature][1]]
-        if not broken or not self._probes.get("speed"):
-            return False
-        rise = float(np.clip(0.0, *bounds["height"])) if "height" in bounds else 0.0
-        bounds["speed"] = (0.0, abs(rise) + PAUSE_SPEED)
-        if not any(c.feature == "speed" for c in active):
-            active.append(Constraint("speed", "low", t + 1))
-        return True
+        actions, shift, log = best[1]  # a push that saturates the actions can land anywhere: the best pass seen
+        return actions, shift, passes, log
 
     def _quantity(self, constraint: Constraint, actions) -> float:
         return action_quantity(constraint, actions, self.steering.barrier_decay)

@@ -91,7 +91,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     if bounds_actions and not 0 <= float(cfg.height_margin) <= 0.1:
         raise UsageError(f"height_margin must be in [0, 0.1] m, got {cfg.height_margin}")
     if cfg.pause:
-        _check_pause(cfg, constraints, bounds_actions)
+        _check_pause(cfg, constraints)
     run = probes_run(cfg) if cfg.method in STEERING else None
     if run is not None:
         _check_probe_weights(run, str(cfg.model))
@@ -120,13 +120,13 @@ def steering(cfg: DictConfig, constraint) -> Steering:
                     height_margin=float(cfg.height_margin), passes=int(cfg.passes), pause=bool(cfg.pause))
 
 
-def _check_pause(cfg: DictConfig, constraints: tuple, bounds_actions: bool) -> None:
-    """pause stops the arm: it needs a bound on the action (filter, control with box=action), a constraint a still
-    arm satisfies (height, speed=low), and none a still arm breaks (speed=high)."""
+def _check_pause(cfg: DictConfig, constraints: tuple) -> None:
+    """pause stops the executed arm: it needs method=filter (a push on the representation did not stop the hand:
+    docs/steering.md), a constraint a still arm satisfies (height, speed=low), and none a still arm breaks
+    (speed=high)."""
     name = constraint_name(constraints)
-    if not bounds_actions:
-        raise UsageError(f"pause=true needs method=filter or method=control with box=action, not method={cfg.method}"
-                         + (" box=state" if cfg.method == "control" else ""))
+    if cfg.method != "filter":
+        raise UsageError(f"pause=true needs method=filter, not method={cfg.method}")
     if not any(pausable(c) for c in constraints):
         raise UsageError(f"pause=true stops the arm, which no constraint in constraint={name} asks for; it takes "
                          f"height=low|high or speed=low")
