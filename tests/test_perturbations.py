@@ -183,3 +183,4 @@ def test_filter_pause_keeps_the_hand_still_and_up_through_the_window(tmp_path):
     window = steps[steps["in_window"]]
     assert (window["z"] >= window["z"].iloc[0] - 1e-3).all()
     assert np.ptp(window[["x", "y"]].to_numpy(), axis=0).max() < 0.01  # it does not move on across
+    assert pd.read_parquet(tmp_path / "paused" / "episodes.parquet")["method"].tolist() == ["filter+pause"]

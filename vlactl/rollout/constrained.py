@@ -65,6 +65,11 @@ class Steering:
     hold_tolerance: float = 0.0
     pause: bool = False  # filter: stop the arm where a pausable constraint binds (`pause_action`)
 
+    @property
+    def label(self) -> str:
+        """What tables and figures call the method: `filter+pause` for the pausing filter, else the method."""
+        return f"{self.method}+pause" if self.pause else self.method
+
 
 def reading_columns(constraints) -> tuple[str, ...]:
     """The step table's reading columns: READING_COLUMNS for one constraint; for several, the push's own columns once

@@ -108,7 +108,7 @@ def run_batch(batch: Batch) -> None:
         row = {
             "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,
-            "wall_s": round(result.wall_s, 3), "model": spec.model, "method": spec.steering.method,
+            "wall_s": round(result.wall_s, 3), "model": spec.model, "method": spec.steering.label,
             "constraint": constraint_name(constraint), "start_gripper": spec.start_gripper,
             "perturbation": spec.perturbation.name if spec.perturbation else "none",
         }
