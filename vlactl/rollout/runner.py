@@ -490,11 +490,12 @@ def resolved_method(cfg: DictConfig) -> str:
 
 
 def default_run_name(cfg: DictConfig) -> str:
-    """<model>_<suite>[_<constraint>_<method>][_perturb-<kind>], e.g. `hybrid_libero_spatial_gripper-open_control`;
-    several constraints are each named: `hybrid_libero_spatial_height-high_speed-low_control`."""
+    """<model>_<suite>[_<constraint>_<method>[-pause]][_perturb-<kind>], e.g.
+    `hybrid_libero_spatial_gripper-open_control`, `..._height-high_filter-pause`; several constraints are each named:
+    `hybrid_libero_spatial_height-high_speed-low_control`."""
     default = f"{cfg.model}_{cfg.suite}"
     named = "_".join(folder_name(c.name) for c in parse_constraints(cfg.constraint))
-    default += f"_{named}_{resolved_method(cfg)}" if named else ""
+    default += f"_{named}_{resolved_method(cfg)}{'-pause' if cfg.get('pause') else ''}" if named else ""
     default += "" if cfg.perturb in (None, "none") else f"_perturb-{cfg.perturb}"
     return folder_name(default)
 
