@@ -67,8 +67,13 @@ class Steering:
 
     @property
     def label(self) -> str:
-        """What tables and figures call the method: `filter+pause` for the pausing filter, else the method."""
-        return f"{self.method}+pause" if self.pause else self.method
+        return method_label(self.method, self.pause)
+
+
+def method_label(method: str, pause: bool) -> str:
+    """What tables, figures and run folders call a method: `filter+pause` for the pausing filter (as a folder name,
+    `filter-pause`), else the method."""
+    return f"{method}+pause" if pause else method
 
 
 def reading_columns(constraints) -> tuple[str, ...]:

@@ -24,7 +24,7 @@ from vlactl.errors import UsageError, check_choice, check_non_negative, check_po
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
-from vlactl.rollout.constrained import METHODS, STEERING, Steering
+from vlactl.rollout.constrained import METHODS, STEERING, Steering, method_label
 from vlactl.rollout.constraints import (BOXES, START_GRIPPER, as_constraints, constraint_name, held_by_default,
                                        parse_constraints, pausable, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
@@ -495,7 +495,7 @@ def default_run_name(cfg: DictConfig) -> str:
     `hybrid_libero_spatial_height-high_speed-low_control`."""
     default = f"{cfg.model}_{cfg.suite}"
     named = "_".join(folder_name(c.name) for c in parse_constraints(cfg.constraint))
-    default += f"_{named}_{resolved_method(cfg)}{'-pause' if cfg.get('pause') else ''}" if named else ""
+    default += f"_{named}_{method_label(resolved_method(cfg), cfg.pause)}" if named else ""
     default += "" if cfg.perturb in (None, "none") else f"_perturb-{cfg.perturb}"
     return folder_name(default)
 
