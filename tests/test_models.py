@@ -81,6 +81,20 @@ def test_hybrid_sampling_is_reproducible_after_reset():
     assert torch.equal(first, policy.predict_action_chunk(obs))
 
 
+def test_hybrid_episode_seed_gives_each_episode_its_own_noise():
+    policy = tiny_policy("hybrid")
+    obs = observation()
+
+    def first_chunk(seed):
+        policy.reset(seed)
+        return policy.predict_action_chunk(obs)
+
+    assert torch.equal(first_chunk(5), first_chunk(5))  # the same episode draws the same noise in every run
+    assert not torch.equal(first_chunk(5), first_chunk(6))
+    assert not torch.equal(first_chunk(5), first_chunk(None))
+    assert torch.equal(first_chunk(None), first_chunk(None))  # no episode seed: the model's one sequence
+
+
 def test_registry_names_and_errors(tmp_path, monkeypatch):
     from vlactl.models import registry
 

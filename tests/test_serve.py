@@ -57,8 +57,8 @@ def _episode(seed: int, steps: int = 5):
     return env, obs
 
 
-def _actions(agent, env, obs):
-    agent.reset(env, obs[0])
+def _actions(agent, env, obs, seed=None):
+    agent.reset(env, obs[0], seed)
     return np.stack([agent.act(o) for o in obs])
 
 
@@ -76,6 +76,10 @@ def test_served_actions_equal_in_process(served):
     for seed in (0, 1, 0):
         env, obs = _episode(seed)
         np.testing.assert_array_equal(_actions(remote, env, obs), _actions(local, env, obs))
+    env, obs = _episode(0)
+    for seed in (7, 8):  # an episode's own noise seed travels with its first request
+        np.testing.assert_array_equal(_actions(remote, env, obs, seed), _actions(local, env, obs, seed))
+    assert not np.array_equal(_actions(remote, env, obs, 7), _actions(remote, env, obs, 8))
 
 
 def test_batched_rows_equal_alone(served):
@@ -107,6 +111,10 @@ def test_bad_message_is_one_line_and_the_server_lives_on(served):
     connection = Connection(served.url)
     with pytest.raises(ServerError, match="bad request: a request needs 'obs'"):
         connection.request({"hello": 1})
+    with pytest.raises(ServerError, match="bad request: seed must be an integer, got 'one'"):
+        images = _episode(0)[1][0].images
+        Connection(served.url).request({"obs": {"images": images, "state": np.zeros(8, np.float32),
+                                                "instruction": "x"}, "reset": True, "seed": "one"})
     with connect(served.url) as ws:
         ws.recv(timeout=10)
         ws.send(b"\xc1 not msgpack")

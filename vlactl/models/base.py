@@ -25,6 +25,16 @@ import torch
 from torch.utils.hooks import RemovableHandle
 
 POOLINGS = ("prefix", "last", "image", "text")
+
+
+def episode_noise_seed(base: int, episode: int | None) -> int:
+    """The seed a model's sampling noise restarts from: its own `base` when no episode seed is given, else one mixed
+    from both (NumPy's SeedSequence), so neighbouring episodes draw unrelated noise. Why per episode: with one noise
+    sequence restarted in every episode, a run's episodes share their draws and its success hangs on that one
+    sequence (the shipped hybrid: 86/100 with noise seed 0, 74/100 with seed 1, the same 100 episodes)."""
+    if episode is None:
+        return int(base)
+    return int(np.random.SeedSequence([int(base), int(episode)]).generate_state(1)[0])
 LayerHook = Callable[[torch.Tensor], "torch.Tensor | None"]
 
 
@@ -111,8 +121,10 @@ class VLA(ABC):
         prompt forward (prefill) only.
         """
 
-    def reset(self) -> None:
-        """Forget any per-episode state (action queues, caches)."""
+    def reset(self, seed: int | None = None) -> None:
+        """Forget any per-episode state (action queues, caches). A model that draws noise restarts it, from
+        `episode_noise_seed(<its own seed>, seed)`: given an episode's seed, each episode draws its own noise and the
+        same episode the same noise in every run."""
 
     def sampling_state(self):
         """The state of the random numbers predictions draw (a flow model's noise), so that a prediction can be

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from vlactl.errors import UsageError
-from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers, last_true
+from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers, episode_noise_seed, last_true
 
 # LIBERO's two cameras in vlactl's datasets -> LeRobot's LIBERO feature names (lerobot/envs/libero.py), in order.
 CAMERA_ORDER = ("image", "wrist_image")
@@ -175,8 +175,10 @@ class LeRobotFlowVLA(StackedLayers):
         finally:
             setattr(config, self.steps_field, steps)
 
-    def reset(self) -> None:
+    def reset(self, seed: int | None = None) -> None:
         self.policy.reset()
+        if seed is not None:  # LeRobot draws its noise from torch's global generators
+            torch.manual_seed(episode_noise_seed(0, seed))
 
     def eval(self) -> "LeRobotFlowVLA":
         self.policy.eval()

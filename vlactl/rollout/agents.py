@@ -34,8 +34,9 @@ class VLAAgent:
         self._queue: list[np.ndarray] = []
         self._instruction = ""
 
-    def reset(self, env, obs) -> None:
-        self.vla.reset()
+    def reset(self, env, obs, seed: int | None = None) -> None:
+        """`seed`: the episode's, from which the model's sampling noise restarts (`VLA.reset`)."""
+        self.vla.reset(seed)
         self._queue = []
         self._instruction = env.instruction
 
@@ -78,7 +79,7 @@ class ScriptedAgent:
 
         self.expert = ScriptedExpert()
 
-    def reset(self, env, obs) -> None:
+    def reset(self, env, obs, seed: int | None = None) -> None:
         self.expert.reset(env, obs)
 
     def act(self, obs) -> np.ndarray:

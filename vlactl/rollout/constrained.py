@@ -101,8 +101,8 @@ class ConstrainedAgent(VLAAgent):
         if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
             self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
 
-    def reset(self, env, obs) -> None:
-        super().reset(env, obs)
+    def reset(self, env, obs, seed: int | None = None) -> None:
+        super().reset(env, obs, seed)
         if self.steering.method == "prompt":
             self._instruction = prompted(env.instruction, self.constraints)
         self._levels = {c.feature: reference(c, float(obs.state[2]), self.steering.speed_threshold)

@@ -40,10 +40,12 @@ def run_episode(
     keep_frames: bool = False,
     hooks: Sequence[StepHook] = (),
     start_gripper: str = "open",
+    noise_seed: int | None = None,
 ) -> EpisodeResult:
+    """`noise_seed`: where the agent's sampling noise restarts (`VLA.reset`); None: the model's own seed."""
     start = time.perf_counter()
     obs = env.reset(init_state, seed=seed, render=render, gripper=start_gripper)
-    agent.reset(env, obs)
+    agent.reset(env, obs, noise_seed)
     states, actions, frames = [obs.state], [], [obs.images] if keep_frames else []
     success = False
     for t in range(max_steps):

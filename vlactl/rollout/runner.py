@@ -33,12 +33,12 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
 SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
                  "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
-                 "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause")
+                 "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause", "episode_noise")
 SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
-              "box": "state", "passes": 3, "height_margin": 0.0, "pause": False}
+              "box": "state", "passes": 3, "height_margin": 0.0, "pause": False, "episode_noise": False}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -360,6 +360,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
         env=env, load_policy=load_policy, constraint=str(cfg.constraint),
         window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation, policy=cfg.policy,
+        episode_noise=bool(cfg.episode_noise),
     )
     if source is not None:
         judge_run(cfg, constraint, plan, todo, where, source)
@@ -370,7 +371,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
             "method": cfg.method, "start_gripper": gripper,
             "steered_layers": list(dict.fromkeys(p.layer for p in plan.probes)),
             "held": sorted({p.feature for p in plan.holds}), "pause": plan.pause,
-            "perturbation": perturbation.name if perturbation else "none"}
+            "episode_noise": bool(cfg.episode_noise), "perturbation": perturbation.name if perturbation else "none"}
     if len(constraint) > 1:  # each constraint with its window and layers; _write_tables adds its satisfaction
         head["constraints"] = {c.name: {"window": c.window, "steered_layers": [
             p.layer for p in plan.probes if p.feature in steered_features(c, cfg.box, cfg.method)]}

@@ -38,6 +38,7 @@ class RunSpec:
     start_gripper: str = "open"  # resolved: open or closed
     perturbation: Perturbation | None = None
     policy: str | None = None  # ws://HOST:PORT: the model runs in a `vlactl serve` process (vlactl.serve)
+    episode_noise: bool = True  # each episode's sampling noise restarts from its own seed, not the model's one
 
 
 @dataclass(frozen=True)
@@ -104,7 +105,8 @@ def run_batch(batch: Batch) -> None:
     for k in batch.episodes:
         init_state, seed = k % env.n_init_states, spec.seed + k
         result = run_episode(env, agent, init_state, seed, spec.max_steps, render, keep_frames=spec.video,
-                             hooks=episode_hooks(spec, constraint), start_gripper=spec.start_gripper)
+                             hooks=episode_hooks(spec, constraint), start_gripper=spec.start_gripper,
+                             noise_seed=seed if spec.episode_noise else None)
         row = {
             "suite": spec.suite, "task_id": batch.task, "episode": k, "instruction": env.instruction,
             "init_state": init_state, "seed": seed, "success": result.success, "steps": result.steps,

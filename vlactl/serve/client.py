@@ -104,10 +104,10 @@ class RemoteAgent(VLAAgent):
         if self.steered:
             self.connection.request({"steer": steer})
         self.readings: dict[int, dict] = {}
-        self._start, self._t = False, 0
+        self._start, self._seed, self._t = False, None, 0
 
-    def reset(self, env, obs) -> None:
-        self._queue, self._instruction, self._start = [], env.instruction, True
+    def reset(self, env, obs, seed: int | None = None) -> None:
+        self._queue, self._instruction, self._start, self._seed = [], env.instruction, True, seed
         self.readings, self._t = {}, 0
 
     def act(self, obs) -> np.ndarray:
@@ -128,7 +128,10 @@ class RemoteAgent(VLAAgent):
                    "state": np.asarray(obs.libero_state, dtype=np.float32)}
         if self.steered:
             message["robot_state"] = np.asarray(obs.state, dtype=np.float64)
-        reply = self.connection.request({"obs": message, "reset": self._start})
+        request = {"obs": message, "reset": self._start}
+        if self._start and self._seed is not None:
+            request["seed"] = int(self._seed)
+        reply = self.connection.request(request)
         self._start = False
         if not isinstance(reply.get("actions"), np.ndarray):
             raise ServerError(f"policy server {self.connection.url} replied without actions; {RESUME}")

@@ -4,7 +4,8 @@ connect, the observation a request carries, and a run's steering as plain maps a
 Requests (maps with string keys):
 - `{"obs": {"images": {camera: uint8 [H, W, 3]}, "state": float32 [8], "instruction": str}, "reset": bool}` ->
   `{"actions": float32 [chunk_size, 7], "server_timing": {...}}`. `reset` starts an episode: its noise stream
-  restarts as `VLA.reset()` restarts it in process, so the same seeds give the same actions.
+  restarts as `VLA.reset(seed)` restarts it in process, from the episode's `seed` (an optional int beside `reset`),
+  so the same seeds give the same actions.
 - openpi's LIBERO keys are taken too: `observation/image`, `observation/wrist_image`, `observation/state`, `prompt`.
 - `{"steer": {...}}` once after connect (`encode_steer`): every episode of this connection is then run in the server
   by a `ConstrainedAgent`, one request at a time, each request one step (`obs` also carries `robot_state`, the
@@ -60,6 +61,14 @@ def observation(request: dict, cameras, needs_images: bool) -> dict:
     return {"images": {c: np.array(images[c]) for c in cameras if c in images} if needs_images else {},  # writable
             "state": state.astype(np.float32), "instruction": obs["instruction"],
             "robot_state": None if robot is None else np.asarray(robot, dtype=np.float64)}
+
+
+def episode_seed(request: dict) -> int | None:
+    """The seed an episode-starting request gives its noise (`seed`, optional); BadRequest if it is not an int."""
+    seed = request.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+        raise BadRequest(f"seed must be an integer, got {seed!r}")
+    return seed
 
 
 class BadRequest(ValueError):

@@ -38,6 +38,7 @@ class Pending:
     session: Session
     obs: dict
     reset: bool
+    seed: int | None  # the episode's, when `reset` starts one
     reply: asyncio.Future
     arrived: float  # perf_counter when its frame came in
 
@@ -80,6 +81,7 @@ class PolicyServer:
                     await ws.send(packb({"steered": True}))
                     continue
                 obs = protocol.observation(request, self.vla.cameras, self.vla.needs_images)
+                seed = protocol.episode_seed(request)
                 if session.agent is not None and obs["robot_state"] is None:
                     raise protocol.BadRequest("a steered request needs obs.robot_state (the SPEC.md §2 state)")
             except Exception as exc:  # noqa: BLE001 - whatever a client sends, it gets one line, the server lives on
@@ -87,7 +89,7 @@ class PolicyServer:
                 await ws.send(f"{'refused' if isinstance(exc, UsageError) else 'bad request'}: {why}")
                 await ws.close()
                 return
-            pending = Pending(session, obs, bool(request.get("reset", False)),
+            pending = Pending(session, obs, bool(request.get("reset", False)), seed,
                               asyncio.get_running_loop().create_future(), received)
             await self._queue.put(pending)
             reply = await pending.reply
@@ -151,7 +153,7 @@ class PolicyServer:
         start = time.perf_counter()
         for p in group:
             if p.reset or p.session.noise is None:  # an episode starts: its noise restarts as in process
-                self.vla.reset()
+                self.vla.reset(p.seed)
                 p.session.noise = self.vla.sampling_state()
         obs = [p.obs for p in group]
         batch = PolicyInput(images={k: np.stack([o["images"][k] for o in obs]) for k in obs[0]["images"]},
@@ -174,7 +176,7 @@ class PolicyServer:
         agent, obs = p.session.agent, p.obs
         seen = SimpleNamespace(images=obs["images"], libero_state=obs["state"], state=obs["robot_state"])
         if p.reset or p.session.noise is None:
-            agent.reset(SimpleNamespace(instruction=obs["instruction"]), seen)  # sets the episode's boxes
+            agent.reset(SimpleNamespace(instruction=obs["instruction"]), seen, p.seed)  # the episode's boxes
             p.session.noise = self.vla.sampling_state()
         self.vla.set_sampling_state(p.session.noise)
         t = agent._t

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import DynamicCache, LlamaModel
 
+from vlactl.models.base import episode_noise_seed
 from vlactl.models.hybrid.configuration_hybrid import HybridConfig
 from vlactl.models.hybrid.processor_hybrid import HybridProcessor
 from vlactl.models.parts.policy import EmbeddedPolicy
@@ -53,8 +54,8 @@ class HybridPolicy(EmbeddedPolicy):
     def _stacks(self):
         return {"backbone": self.backbone.layers, "expert": self.expert.layers}
 
-    def reset(self) -> None:
-        self._noise.manual_seed(self.config.noise_seed)
+    def reset(self, seed: int | None = None) -> None:
+        self._noise.manual_seed(episode_noise_seed(self.config.noise_seed, seed))
 
     def sampling_state(self):
         return self._noise.get_state()
