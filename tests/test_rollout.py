@@ -57,6 +57,18 @@ def test_resume_refuses_other_settings(rollout):
     root, *_ = rollout
     with pytest.raises(UsageError, match="seed"):
         run_rollout(_cfg(root, "episodes_per_task=2", "seed=5"), load_policy=fixture_policy.load)
+    with pytest.raises(UsageError, match="episode_noise=True, not False"):
+        run_rollout(_cfg(root, "episodes_per_task=2", "episode_noise=false"), load_policy=fixture_policy.load)
+
+
+def test_runs_saved_before_episode_noise_resume_only_without_it(tmp_path):
+    """Their episodes all restarted the model's one noise sequence: parts of both kinds must not mix."""
+    from vlactl.rollout.runner import _differing_key
+
+    saved = tmp_path / "config.yaml"
+    saved.write_text("model: hybrid\n")
+    assert _differing_key(saved, {"episode_noise": True}, ["episode_noise"]) == ("episode_noise", False, True)
+    assert _differing_key(saved, {"episode_noise": False}, ["episode_noise"]) is None
 
 
 @pytest.mark.parametrize(
