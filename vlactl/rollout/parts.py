@@ -60,6 +60,10 @@ def merge(out: Path, keys: list[tuple[int, int]]) -> tuple[pd.DataFrame, pd.Data
     rows = [json.loads(s.with_suffix(".json").read_text()) for s in done]
     own = dict.fromkeys(key for row in rows for key in row if key.startswith("satisfaction_"))  # several constraints
     episodes = pd.DataFrame(rows, columns=[*EPISODE_COLUMNS, *own])
-    steps = [pd.read_parquet(s.with_suffix(".parquet")) for s in done]
-    steps = pd.concat(steps, ignore_index=True) if steps else pd.DataFrame(columns=STEP_COLUMNS)
+    # an episode whose column is all missing (no window, no constraint) must not decide that column's dtype
+    tables = [pd.read_parquet(s.with_suffix(".parquet")) for s in done]
+    if not tables:
+        return episodes, pd.DataFrame(columns=STEP_COLUMNS)
+    columns = list(dict.fromkeys(c for t in tables for c in t.columns))
+    steps = pd.concat([t.dropna(axis=1, how="all") for t in tables], ignore_index=True).reindex(columns=columns)
     return episodes, steps
