@@ -102,3 +102,14 @@ def keyed_parts(out: Path, key: dict, results: tuple[str, ...]) -> Path:
 def folder_name(text: str) -> str:
     """`text` made safe as one folder name: runs of other characters become '-' (e.g. `gripper=open` -> `gripper-open`)."""
     return re.sub(r"[^A-Za-z0-9._-]+", "-", text).strip("-.")
+
+
+def concat_tables(tables: list, empty_columns: list[str] | None = None):
+    """Row-wise concatenation in which a table's all-missing column (an unconstrained run's control columns, an
+    episode without a window) does not decide that column's dtype; columns in first-seen order."""
+    import pandas as pd
+
+    if not tables:
+        return pd.DataFrame(columns=empty_columns)
+    columns = list(dict.fromkeys(c for t in tables for c in t.columns))
+    return pd.concat([t.dropna(axis=1, how="all") for t in tables], ignore_index=True).reindex(columns=columns)

@@ -27,7 +27,7 @@ from omegaconf import DictConfig
 
 from vlactl.config import resolve_path
 from vlactl.errors import UsageError
-from vlactl.io import atomic_write_text
+from vlactl.io import atomic_write_text, concat_tables
 from vlactl.plots.files import check_formats, plt, save_figure
 from vlactl.rollout.summary import success_interval
 
@@ -52,7 +52,7 @@ def load_runs(folders: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
         raise UsageError(f"no constrained rollout runs among {[str(f) for f in folders]}; run "
                          "`vlactl rollout --constraint ... --method ...` first")
     out = []
-    for table in (pd.concat(episodes, ignore_index=True), pd.concat(steps, ignore_index=True)):
+    for table in (concat_tables(episodes), concat_tables(steps)):
         split = table["constraint"].str.split("=", expand=True)
         out.append(table.assign(feature=split[0], condition=split[1]))
     return out[0], out[1]

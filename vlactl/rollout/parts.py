@@ -13,7 +13,7 @@ from pathlib import Path
 import pandas as pd
 
 from vlactl.env.features import ACTION_FEATURES, STATE_FEATURES, speeds
-from vlactl.io import atomic_write_json, atomic_write_parquet
+from vlactl.io import atomic_write_json, atomic_write_parquet, concat_tables
 
 EPISODE_KEY = ["task_id", "episode"]
 EPISODE_COLUMNS = [
@@ -60,10 +60,5 @@ def merge(out: Path, keys: list[tuple[int, int]]) -> tuple[pd.DataFrame, pd.Data
     rows = [json.loads(s.with_suffix(".json").read_text()) for s in done]
     own = dict.fromkeys(key for row in rows for key in row if key.startswith("satisfaction_"))  # several constraints
     episodes = pd.DataFrame(rows, columns=[*EPISODE_COLUMNS, *own])
-    # an episode whose column is all missing (no window, no constraint) must not decide that column's dtype
-    tables = [pd.read_parquet(s.with_suffix(".parquet")) for s in done]
-    if not tables:
-        return episodes, pd.DataFrame(columns=STEP_COLUMNS)
-    columns = list(dict.fromkeys(c for t in tables for c in t.columns))
-    steps = pd.concat([t.dropna(axis=1, how="all") for t in tables], ignore_index=True).reindex(columns=columns)
+    steps = concat_tables([pd.read_parquet(s.with_suffix(".parquet")) for s in done], STEP_COLUMNS)
     return episodes, steps
