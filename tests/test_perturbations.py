@@ -177,10 +177,15 @@ def test_bad_pause_settings_fail_before_any_worker(tmp_path, extra, message):
 
 
 def test_filter_pause_keeps_the_hand_still_and_up_through_the_window(tmp_path):
-    run(tmp_path, "constraint=height=high", "method=filter", "pause=true", "window=4", "metres_per_unit=0.012")
-    out = tmp_path / "random_libero_spatial_height-high_filter-pause"  # never the smallest-change filter's folder
+    # the pause acts only where a prediction breaks a bound: a speed bound no motion keeps makes it act at every
+    # window step, whatever the random fixture predicts (alone, height=high binds only on a descending prediction)
+    run(tmp_path, "constraint=[height=high,speed=low]", "method=filter", "pause=true", "window=4",
+        "metres_per_unit=0.012", "speed_threshold=0.001")
+    [out] = tmp_path.iterdir()
+    assert out.name.endswith("_filter-pause")  # never the smallest-change filter's folder
     steps = pd.read_parquet(out / "steps.parquet")
     window = steps[steps["in_window"]]
     assert (window["z"] >= window["z"].iloc[0] - 1e-3).all()
     assert np.ptp(window[["x", "y"]].to_numpy(), axis=0).max() < 0.01  # it does not move on across
+    assert (window[["droll", "dpitch", "dyaw"]] == 0).all().all()  # a stop, not the speed scaled down
     assert pd.read_parquet(out / "episodes.parquet")["method"].tolist() == ["filter+pause"]
