@@ -105,8 +105,9 @@ def folder_name(text: str) -> str:
 
 
 def concat_tables(tables: list, empty_columns: list[str] | None = None):
-    """Row-wise concatenation in which a table's all-missing column (an unconstrained run's control columns, an
-    episode without a window) does not decide that column's dtype; columns in first-seen order."""
+    """Row-wise concatenation in which a table's all-missing column (the probe readings of an episode in which the
+    controller never pushed, a control run's columns beside a filter run's) does not decide that column's dtype;
+    columns in first-seen order."""
     import pandas as pd
 
     if not tables:
