@@ -95,6 +95,21 @@ def test_hybrid_episode_seed_gives_each_episode_its_own_noise():
     assert torch.equal(first_chunk(None), first_chunk(None))  # no episode seed: the model's one sequence
 
 
+def test_hybrid_samples_execute_the_median_of_independent_flows():
+    """samples=3 draws three noises per row and flows each: the same flows as a batch of each row three times."""
+    import numpy as np
+
+    from vlactl.models.base import PolicyInput
+
+    obs = observation()
+    repeated = PolicyInput({k: np.repeat(v, 3, axis=0) for k, v in obs.images.items()}, np.repeat(obs.state, 3, axis=0),
+                           [text for text in obs.instruction for _ in range(3)])
+    flows = tiny_policy("hybrid").predict_action_chunk(repeated).view(2, 3, -1, 7)
+    chunk = tiny_policy("hybrid", samples=3).predict_action_chunk(obs)
+    assert torch.allclose(chunk, flows.median(dim=1).values, atol=1e-6)
+    assert not torch.allclose(chunk, flows[:, 0], atol=1e-4)
+
+
 def test_registry_names_and_errors(tmp_path, monkeypatch):
     from vlactl.models import registry
 

@@ -19,3 +19,4 @@ class HybridConfig(VLAConfig):
     encode_time: float = 1.0  # the flow time at which `encode` runs the expert once, on zero noise
     noise_seed: int = 0  # sampling noise restarts from this seed at every reset(), so rollouts are reproducible
     noise_scale: float = 1.0  # std of the noise sampling starts from; 0: one deterministic flow from the mean
+    samples: int = 1  # flows per re-plan from independent noise; > 1: each action value their median (odd counts)

@@ -122,16 +122,21 @@ class HybridPolicy(EmbeddedPolicy):
         cache, n_prefix = self._run_prefix(inputs)
         b = inputs["state"].shape[0]
         shape = (self.config.chunk_size, self.config.action_dim)
+        samples = self.config.samples
         if self._row_noise is None:
-            x = torch.randn(b, *shape, generator=self._noise)
+            x = torch.randn(b * samples, *shape, generator=self._noise)
         else:
-            x = torch.cat([torch.randn(1, *shape, generator=g) for g in self._row_noise])
+            x = torch.cat([torch.randn(samples, *shape, generator=g) for g in self._row_noise])
         x = x * self.config.noise_scale
+        if samples > 1:
+            cache.batch_repeat_interleave(samples)
         steps = self.config.flow_steps
         for k in range(steps):
-            t = torch.full((b,), 1.0 - k / steps)
+            t = torch.full((b * samples,), 1.0 - k / steps)
             x = x - self._velocity(cache, n_prefix, x, t) / steps
-        return x
+        # Several flows from independent noise: each action value the median of its samples (one value that
+        # minimises the expected absolute error, as the autoregressive model's median bin).
+        return x.view(b, samples, *shape).median(dim=1).values if samples > 1 else x
 
     def _encode(self, inputs) -> None:
         cache, n_prefix = self._run_prefix(inputs)
