@@ -110,6 +110,18 @@ def test_hybrid_samples_execute_the_median_of_independent_flows():
     assert not torch.allclose(chunk, flows[:, 0], atol=1e-4)
 
 
+def test_inference_options_replace_a_checkpoints_config_for_one_load(tmp_path):
+    tiny_policy("hybrid").save_pretrained(tmp_path)
+    assert load_policy(str(tmp_path), samples=3).config.samples == 3
+    assert load_policy(str(tmp_path)).config.samples == 1  # the checkpoint itself is left alone
+    with pytest.raises(UsageError, match="model.width does not apply to a hybrid checkpoint; allowed: model.samples"):
+        load_policy(str(tmp_path), width=64)
+    with pytest.raises(UsageError, match="model.samples 0; allowed: a whole number >= 1"):
+        load_policy(str(tmp_path), samples=0)
+    with pytest.raises(UsageError, match="do not apply to 'random'"):
+        load_policy(RANDOM, samples=3)
+
+
 def test_registry_names_and_errors(tmp_path, monkeypatch):
     from vlactl.models import registry
 

@@ -299,5 +299,5 @@ def test_model_options_reach_the_adapter_and_are_refused_elsewhere():
     assert cfg.model == "openvla" and dict(cfg.model_args) == {"checkpoint": "/ckpt", "unnorm_key": "libero_10"}
     with pytest.raises(UsageError, match="model=pi05 needs model.checkpoint"):
         load_policy("pi05")
-    with pytest.raises(UsageError, match="model.checkpoint apply only to a real model"):
+    with pytest.raises(UsageError, match="model.checkpoint does not apply to a hybrid checkpoint; allowed: model.samples"):
         load_policy("hybrid", checkpoint="/ckpt")

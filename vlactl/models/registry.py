@@ -57,21 +57,18 @@ def checkpoint_folder(path: Path) -> Path | None:
 
 
 def load_policy(name_or_path: str, **options):
-    """The policy a model name or path stands for; `options` (a real model's `model.<option>=` overrides) go to its
-    adapter's `load`."""
+    """The policy a model name or path stands for; `options` (`model.<option>=` overrides) go to a real model's
+    adapter's `load`, or replace an embedded checkpoint's inference options (`VLAConfig.INFERENCE_OPTIONS`)."""
     from vlactl.models.parts.policy import read_model_name
 
     if name_or_path in ADAPTERS:
         return adapter_class(name_or_path).load(**options)
-    if options:
-        raise UsageError(
-            f"model options {', '.join(f'model.{k}' for k in options)} apply only to a real model "
-            f"({', '.join(ADAPTERS)}), not to {name_or_path!r}"
-        )
     if name_or_path == RANDOM:
+        if options:
+            raise UsageError(f"model options {', '.join(f'model.{k}' for k in options)} do not apply to {RANDOM!r}")
         return tiny_policy("hybrid")
     folder = resolve_checkpoint(name_or_path)
-    return policy_class(read_model_name(folder)).from_pretrained(folder)
+    return policy_class(read_model_name(folder)).from_pretrained(folder, **options)
 
 
 def policy_loader(cfg):

@@ -13,6 +13,7 @@ DECODES = ("argmax", "median")
 
 @dataclass(frozen=True)
 class AutoregressiveConfig(VLAConfig):
+    INFERENCE_OPTIONS = ("decode",)
     # A short chunk decoded as chunk_size * 7 tokens: the prompt is read once per chunk, and executing a chunk
     # gives smoother motion than one action per query.
     chunk_size: int = 5

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from vlactl.errors import UsageError
+
 from vlactl.models.parts.config import VLAConfig
 
 
 @dataclass(frozen=True)
 class HybridConfig(VLAConfig):
+    INFERENCE_OPTIONS = ("samples", "noise_scale")
     chunk_size: int = 10
     replan_every: int = 5
     # The expert is a narrower Llama with the backbone's depth, heads and head size, so that its layer i can attend
@@ -20,3 +23,7 @@ class HybridConfig(VLAConfig):
     noise_seed: int = 0  # sampling noise restarts from this seed at every reset(), so rollouts are reproducible
     noise_scale: float = 1.0  # std of the noise sampling starts from; 0: one deterministic flow from the mean
     samples: int = 1  # flows per re-plan from independent noise; > 1: each action value their median (odd counts)
+
+    def __post_init__(self):
+        if not isinstance(self.samples, int) or self.samples < 1:
+            raise UsageError(f"model.samples {self.samples!r}; allowed: a whole number >= 1 (odd: a true median)")

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import ClassVar
 
 
 @dataclass(frozen=True)
 class VLAConfig:
+    # Fields that change how a trained model acts, not its weights: a stage may set them for one run
+    # (`model.<field>=<value>`) on a checkpoint that was saved with other values.
+    INFERENCE_OPTIONS: ClassVar[tuple[str, ...]] = ()
     cameras: tuple[str, ...] = ("image", "wrist_image")
     image_size: int = 128
     vision_channels: tuple[int, ...] = (16, 32, 64)

@@ -72,11 +72,21 @@ class EmbeddedPolicy(nn.Module, StackedLayers):
         self.processor.save(folder)
 
     @classmethod
-    def from_pretrained(cls, folder: Path) -> "EmbeddedPolicy":
+    def from_pretrained(cls, folder: Path, **options) -> "EmbeddedPolicy":
+        """The checkpoint in `folder`; `options` replace its config's `INFERENCE_OPTIONS` for this load."""
+        import dataclasses
+
         from safetensors.torch import load_model
+
+        from vlactl.errors import UsageError
 
         folder = Path(folder)
         config = cls.config_class.from_dict(json.loads((folder / CONFIG_FILE).read_text())["config"])
+        allowed = cls.config_class.INFERENCE_OPTIONS
+        if unknown := sorted(set(options) - set(allowed)):
+            raise UsageError(f"model option {', '.join(f'model.{k}' for k in unknown)} does not apply to a {cls.name} "
+                             f"checkpoint; allowed: {', '.join(f'model.{k}' for k in allowed) or 'none'}")
+        config = dataclasses.replace(config, **options)
         policy = cls(config, cls.processor_class.load(config, folder))
         load_model(policy, str(folder / WEIGHTS_FILE))
         return policy.eval()
