@@ -126,7 +126,7 @@ TINY = dict(
     vision_channels=(8, 8, 8), width=32, layers=2, heads=2, kv_heads=1, head_dim=16, mlp_width=64, max_text_tokens=12,
     chunk_size=4, replan_every=2,
 )
-TINY_EXTRA = {"hybrid": dict(expert_width=32, expert_mlp_width=64, flow_steps=2), "autoregressive": {}}
+TINY_EXTRA = {"hybrid": dict(expert_width=32, expert_mlp_width=64, flow_steps=2, samples=1), "autoregressive": {}}
 TINY_INSTRUCTIONS = [
     "pick up the black bowl between the plate and the ramekin and place it on the plate",
     "pick up the black bowl on the stove and place it on the plate",
