@@ -71,6 +71,22 @@ def test_runs_saved_before_episode_noise_resume_only_without_it(tmp_path):
     assert _differing_key(saved, {"episode_noise": False}, ["episode_noise"]) is None
 
 
+def test_a_run_records_its_models_inference_options_and_resumes_only_with_them(tmp_path):
+    """A checkpoint's own `samples` changed since a run began, or `model.samples=` given: the parts would mix."""
+    from vlactl.models.registry import RANDOM, inference_options, tiny_policy
+    from vlactl.rollout.runner import _differing_key
+
+    tiny_policy("hybrid").save_pretrained(tmp_path)
+    assert inference_options(str(tmp_path)) == {"samples": 1, "noise_scale": 1.0}
+    five = inference_options(str(tmp_path), samples=5)
+    assert five == {"samples": 5, "noise_scale": 1.0} and inference_options(RANDOM) is None
+    saved = tmp_path / "config.yaml"
+    saved.write_text("model: hybrid\nmodel_inference: {samples: 1, noise_scale: 1.0}\n")
+    assert _differing_key(saved, {"model_inference": five}, ["model_inference"])[0] == "model_inference"
+    saved.write_text("model: hybrid\n")  # a run saved before the key: not compared
+    assert _differing_key(saved, {"model_inference": five}, ["model_inference"]) is None
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [

@@ -15,7 +15,7 @@ import multiprocessing as mp
 from pathlib import Path
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 from tqdm import tqdm
 
 from vlactl.config import REPO_ROOT, load_policy_stage_config, quote_values, resolve_path, save_config, stage_output
@@ -31,14 +31,16 @@ from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
 # Settings that change what an episode is: parts made under other values must not be mixed into this run.
-SAME_RUN_KEYS = ("model", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env", "constraint", "window",
-                 "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb", "perturb_start",
-                 "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause", "episode_noise")
+SAME_RUN_KEYS = ("model", "model_inference", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env",
+                 "constraint", "window", "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb",
+                 "perturb_start", "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause",
+                 "episode_noise")
 SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
-              "box": "state", "passes": 3, "height_margin": 0.0, "pause": False, "episode_noise": False}
+              "box": "state", "passes": 3, "height_margin": 0.0, "pause": False, "episode_noise": False,
+              "model_inference": None}  # None: not recorded, not compared (runs before 2026-12-02 evening)
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -305,6 +307,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     if OmegaConf.is_missing(cfg, "model"):
         raise UsageError("model is required: model=<registry name or checkpoint path>, e.g. model=scripted")
     shards.check(cfg.shard, cfg.num_shards)
+    registry_loaded = load_policy is None
     if load_policy is None:
         from vlactl.models.registry import policy_loader
 
@@ -323,6 +326,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     plan = steering(cfg, constraint)
     perturbation = parse_perturbation(cfg.perturb, cfg.perturb_start, cfg.perturb_steps, cfg.perturb_size, cfg.max_steps)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
+    if registry_loaded:
+        record_model_inference(cfg)
     out = run_dir(cfg)
     where = shards.folder(out, cfg.shard, cfg.num_shards)  # a shard writes only into a folder of its own
     for folder in dict.fromkeys([out, where, *shards.folders(out)]):  # all hold episodes of this one run
@@ -400,6 +405,7 @@ def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps  # resolved as the shards saved
     resolve_defaults(cfg)
     cfg.start_gripper = start_gripper(cfg.start_gripper, canonical_constraint(cfg), cfg.method)
+    record_model_inference(cfg)
     out = run_dir(cfg)
     folders = shards.folders(out)
     for folder in [out, *folders]:
@@ -509,11 +515,26 @@ def run_dir(cfg: DictConfig) -> Path:
     return ensure_writable_dir(root, requested=root, key="output_root") / name
 
 
+def record_model_inference(cfg: DictConfig) -> None:
+    """`cfg.model_inference`: the inference options the run's workers load the model with (an embedded checkpoint's
+    `samples`, `decode`, ...), saved and compared on resume like the other SAME_RUN_KEYS. Not for the scripted
+    expert or a policy server's model, which the workers do not load."""
+    if cfg.policy or str(cfg.model) == SCRIPTED:
+        return
+    from vlactl.models.registry import inference_options
+
+    options = OmegaConf.to_container(cfg.model_args, resolve=True) if cfg.get("model_args") else {}
+    with open_dict(cfg):
+        cfg.model_inference = inference_options(str(cfg.model), **options)
+
+
 def _differing_key(saved: Path, new: dict, keys) -> tuple | None:
     """(key, saved value, new value) of the first of `keys` on which a saved run config differs from `new`."""
     old = OmegaConf.to_container(OmegaConf.load(saved))
     old = {key: old.get(key, BEFORE_KEY.get(key)) for key in keys}
-    return next(((key, old[key], new[key]) for key in keys if old[key] != new[key]), None)
+    unrecorded = {"model_inference"} if old.get("model_inference") is None else set()
+    return next(((key, old[key], new.get(key)) for key in keys if key not in unrecorded and old[key] != new.get(key)),
+                None)
 
 
 def _check_same_run(cfg: DictConfig, out: Path) -> None:
