@@ -8,7 +8,6 @@ tests only.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import importlib
 from pathlib import Path
@@ -76,16 +75,13 @@ def inference_options(name_or_path: str, **options) -> dict | None:
     """The inference options (`VLAConfig.INFERENCE_OPTIONS`) an embedded checkpoint acts with: its config's, as
     `options` (`model.<option>=`) replace them; None for a real model and `random`. A run records them, so that a
     resumed run acts as it began even when the checkpoint's own values changed."""
-    import json
-
-    from vlactl.models.parts.policy import CONFIG_FILE, read_model_name
+    from vlactl.models.parts.policy import read_model_name
 
     if name_or_path in ADAPTERS or name_or_path == RANDOM:
         return None
     folder = resolve_checkpoint(name_or_path)
-    config_class = policy_class(read_model_name(folder)).config_class
-    saved = {**dataclasses.asdict(config_class()), **json.loads((folder / CONFIG_FILE).read_text())["config"]}
-    return {key: options.get(key, saved[key]) for key in config_class.INFERENCE_OPTIONS}
+    saved = policy_class(read_model_name(folder)).saved_config(folder)
+    return {key: options.get(key, getattr(saved, key)) for key in saved.INFERENCE_OPTIONS}
 
 
 def policy_loader(cfg):

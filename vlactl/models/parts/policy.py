@@ -7,12 +7,14 @@ actions) and `_encode`.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import torch
 from torch import nn
 
+from vlactl.errors import UsageError
 from vlactl.models.base import POOLINGS, PolicyInput, StackedLayers
 from vlactl.models.parts.config import VLAConfig
 from vlactl.models.parts.processing import Processor
@@ -72,16 +74,17 @@ class EmbeddedPolicy(nn.Module, StackedLayers):
         self.processor.save(folder)
 
     @classmethod
+    def saved_config(cls, folder: Path) -> VLAConfig:
+        """The config a checkpoint folder was saved with."""
+        return cls.config_class.from_dict(json.loads((Path(folder) / CONFIG_FILE).read_text())["config"])
+
+    @classmethod
     def from_pretrained(cls, folder: Path, **options) -> "EmbeddedPolicy":
         """The checkpoint in `folder`; `options` replace its config's `INFERENCE_OPTIONS` for this load."""
-        import dataclasses
-
         from safetensors.torch import load_model
 
-        from vlactl.errors import UsageError
-
         folder = Path(folder)
-        config = cls.config_class.from_dict(json.loads((folder / CONFIG_FILE).read_text())["config"])
+        config = cls.saved_config(folder)
         allowed = cls.config_class.INFERENCE_OPTIONS
         if unknown := sorted(set(options) - set(allowed)):
             raise UsageError(f"model option {', '.join(f'model.{k}' for k in unknown)} does not apply to a {cls.name} "
