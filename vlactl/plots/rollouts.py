@@ -143,8 +143,10 @@ def figure_success_vs_satisfaction(episodes: pd.DataFrame):
                 per_task = group.groupby("task_id").agg(sat=("satisfaction", "mean"), ok=("success", "mean"))
                 x, y = per_task["sat"].mean(), per_task["ok"].mean()
                 colour, marker, size = style[method]
+                # the outline keeps an ellipse of zero width (every task equally satisfied) visible as a bar
                 ax.add_patch(Ellipse((x, y), 2 * np.nan_to_num(per_task["sat"].std()),
-                                     2 * np.nan_to_num(per_task["ok"].std()), color=colour, alpha=0.12, lw=0))
+                                     2 * np.nan_to_num(per_task["ok"].std()), facecolor=colour, edgecolor=colour,
+                                     alpha=0.15, lw=1.2))
                 ax.scatter(x, y, s=size, marker=marker, facecolors="none", edgecolors=colour, linewidths=1.6,
                            zorder=3, label=method)
             ax.set_title(f"{feature}={conditions[c]}", fontsize=9)
@@ -152,7 +154,7 @@ def figure_success_vs_satisfaction(episodes: pd.DataFrame):
             ax.set_ylim(-0.05, 1.05)
             ax.set_xlabel("constraint satisfaction")
             ax.set_ylabel("task success rate")
-            ax.legend(fontsize=6, loc="lower left")
+            ax.legend(fontsize=6, loc="best")
     return fig
 
 
