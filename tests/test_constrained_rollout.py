@@ -112,6 +112,7 @@ def test_baselines_under_gripper_closed_start_with_the_gripper_closed(tmp_path):
     (["method=meandiff", "probes=/nonexistent"], "not a probe run folder"),
     (["start_gripper=shut"], "start_gripper"),
     (["constraint=gripper=closed", "method=none", "judge_from=/nonexistent"], "cannot stand in"),
+    (["constraint=speed=low", "method=filter", "speed_margin=1.2"], r"speed_margin must be in \[0, 1\)"),
 ])
 def test_bad_input_is_a_usage_error(tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):

@@ -98,6 +98,9 @@ def test_speed_filter_scales_the_translation_along_its_direction():
     assert np.linalg.norm(slowed[:3]) == pytest.approx(0.45) and np.allclose(slowed[:3] / 0.45, a[:3])
     assert np.array_equal(filter_action(high, a, 1.0, 0.1, 0.01), a)
     assert np.linalg.norm(filter_action(high, a * 0.1, 1.0, 0.1, 0.01)[:3]) == pytest.approx(0.55)
+    # speed_margin moves the bound further inside: 0.5 units x (1 -+ 0.3)
+    assert np.linalg.norm(filter_action(low, a, 1.0, 0.1, 0.01, speed_margin=0.3)[:3]) == pytest.approx(0.35)
+    assert action_bound(high, 1.0, 0.1, 0.01, speed_margin=0.3) == (pytest.approx(0.65), np.inf)
 
 
 def test_gripper_filter_forces_the_command():

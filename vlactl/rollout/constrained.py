@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import (GRIPPER_BOUND, Constraint, action_bound, action_quantity, as_constraints, box,
-                                       prompted, push_weights, reference)
+from vlactl.rollout.constraints import (GRIPPER_BOUND, SPEED_MARGIN, Constraint, action_bound, action_quantity,
+                                       as_constraints, box, prompted, push_weights, reference)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -59,6 +59,7 @@ class Steering:
     metres_per_unit: float = 0.0  # filter, box=action: hand motion per unit of translation command per step
     barrier_decay: float = 0.5
     height_margin: float = 0.0  # filter, box=action: metres the height barrier's level lies inside the allowed side
+    speed_margin: float = SPEED_MARGIN  # filter, box=action: share of the threshold the speed bound lies inside it
     box: str = "action"  # control: bound the predicted action (action) or the probe's reading of the state (state)
     passes: int = 5  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
@@ -144,7 +145,7 @@ class ConstrainedAgent(VLAAgent):
         active = named + self._gripper_kept(actions, t)
         bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels.get(c.feature, 0.0),
                                           plan.metres_per_unit, plan.barrier_decay, self.replan_every,
-                                          plan.height_margin) for c in active}
+                                          plan.height_margin, plan.speed_margin) for c in active}
         before = {c.feature: self._quantity(c, actions) for c in active}
         self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
         row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}

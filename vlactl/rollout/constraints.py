@@ -183,12 +183,14 @@ def box(constraint: Constraint, level: float, logit_margin: float = 2.0) -> tupl
 
 GRIPPER_BOUND = 0.5
 SPEED_MARGIN = 0.1  # the speed bound lies this share inside the threshold: a hand held exactly at it wobbles across
-                    # (filter speed=low at the threshold itself: mean speed 0.194 m/s, 59% of window steps satisfied)
+                    # (filter speed=low at the threshold itself: mean speed 0.194 m/s, 59% of window steps satisfied);
+                    # the rollout's `speed_margin`
 BARRIER_DECAY = 0.5  # share of the remaining distance to the bound a step may close (discrete-time barrier rate)
 
 
 def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit: float,
-                 decay: float = BARRIER_DECAY, steps: int = 1, margin: float = 0.0) -> tuple[float, float]:
+                 decay: float = BARRIER_DECAY, steps: int = 1, margin: float = 0.0,
+                 speed_margin: float = SPEED_MARGIN) -> tuple[float, float]:
     """[lo, hi] on the action quantity the constraint acts on (`action_quantity`), for the next `steps` actions
     (docs/steering.md):
     - gripper: every gripper command about to be executed past +-0.5 on the wanted side (it then executes as close /
@@ -198,8 +200,8 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
       mean dz >= -(1 - (1 - decay)^k) (z - z0) / (k s) (k = 1: dz >= -decay (z - z0) / s), and the mirror image for
       low: the hand may approach the start height by `decay` of its distance per step, so it slows towards the bound
       instead of bouncing off it;
-    - speed: the commanded translation's norm, |(dx, dy, dz)| <= (low) or >= (high) threshold dt / s, 10%
-      (`SPEED_MARGIN`) inside the threshold.
+    - speed: the commanded translation's norm, |(dx, dy, dz)| <= (low) or >= (high) threshold dt / s, the share
+      `speed_margin` inside the threshold (the hand's speed per unit of command varies from step to step).
     `margin` (metres) moves the height barrier's level that far to the allowed side of z0, so a hand that settles at
     the level is judged satisfied (z >= z0) despite the few millimetres it wobbles. A bound the formula puts on the
     wrong side of 0 (the hand already past the level) asks for a move back."""
@@ -213,7 +215,7 @@ def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit
         if constraint.upper:
             return (-rate * (z - level), math.inf)
         return (-math.inf, rate * (level - z))
-    inside = 1 + SPEED_MARGIN if constraint.upper else 1 - SPEED_MARGIN
+    inside = 1 + speed_margin if constraint.upper else 1 - speed_margin
     norm = inside * level * CONTROL_DT / metres_per_unit
     return (norm, math.inf) if constraint.upper else (0.0, norm)
 
@@ -255,14 +257,14 @@ def push_weights(constraint: Constraint, actions) -> dict[str, float]:
 
 
 def filter_action(constraint: Constraint, action, z: float, level: float, metres_per_unit: float,
-                  decay: float = BARRIER_DECAY, margin: float = 0.0):
+                  decay: float = BARRIER_DECAY, margin: float = 0.0, speed_margin: float = SPEED_MARGIN):
     """`method=filter`: the executed action changed as little as possible (in L2) so that its constrained quantity
     lies in `action_bound`: the gripper command forced to open / close, dz clipped to the barrier, the translation
     scaled to the speed bound (along its own direction). The oracle an action-space safety filter gives."""
     import numpy as np
 
     out = np.array(action, dtype=np.float64)
-    lo, hi = action_bound(constraint, z, level, metres_per_unit, decay, margin=margin)
+    lo, hi = action_bound(constraint, z, level, metres_per_unit, decay, margin=margin, speed_margin=speed_margin)
     if constraint.feature == "gripper":
         out[6] = 1.0 if constraint.upper else -1.0
     elif constraint.feature == "height":
@@ -296,7 +298,8 @@ def pause_action(action, height_bound: tuple[float, float] | None = None):
 
 
 def filter_actions(constraints, action, z: float, start_z: float, speed_threshold: float, metres_per_unit: float,
-                   decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False):
+                   decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False,
+                   speed_margin: float = SPEED_MARGIN):
     """`filter_action` for several constraints at once. The gripper command is forced apart from the translation.
     Height and speed both bound the translation: the result is the one nearest the action (L2) that keeps dz in the
     barrier and the norm in the speed bound, among the speed filter alone, the height filter alone, and dz clipped
@@ -311,7 +314,8 @@ def filter_actions(constraints, action, z: float, start_z: float, speed_threshol
     by_feature = {c.feature: c for c in constraints}
     if pause:
         bounds = {c.feature: action_bound(c, z, reference(c, start_z, speed_threshold), metres_per_unit, decay,
-                                          margin=margin) for c in constraints if pausable(c)}
+                                          margin=margin, speed_margin=speed_margin)
+                  for c in constraints if pausable(c)}
         if any(not lo <= action_quantity(by_feature[f], action, decay) <= hi for f, (lo, hi) in bounds.items()):
             out = pause_action(action, bounds.get("height"))
             return filter_action(by_feature["gripper"], out, z, 0.0, metres_per_unit) if "gripper" in by_feature \
@@ -319,13 +323,14 @@ def filter_actions(constraints, action, z: float, start_z: float, speed_threshol
     if len(constraints) == 1 or not {"height", "speed"} <= set(by_feature):
         out = np.array(action, dtype=np.float64)
         for c in constraints:
-            out = filter_action(c, out, z, reference(c, start_z, speed_threshold), metres_per_unit, decay, margin)
+            out = filter_action(c, out, z, reference(c, start_z, speed_threshold), metres_per_unit, decay, margin,
+                                speed_margin)
         return out
     height, speed = by_feature["height"], by_feature["speed"]
     out = filter_action(by_feature["gripper"], action, z, 0.0, metres_per_unit) if "gripper" in by_feature \
         else np.array(action, dtype=np.float64)
     (lo, hi), (slow, fast) = (action_bound(c, z, reference(c, start_z, speed_threshold), metres_per_unit, decay,
-                                           margin=margin) for c in (height, speed))
+                                           margin=margin, speed_margin=speed_margin) for c in (height, speed))
     v = out[:3].copy()
 
     def along(w):  # the speed filter: scaled along its own direction
@@ -355,7 +360,8 @@ def filter_actions(constraints, action, z: float, start_z: float, speed_threshol
 
 
 def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
-                decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False):
+                decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False,
+                speed_margin: float = SPEED_MARGIN):
     """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window (several
     constraints: each over its own window, together where windows overlap, `filter_actions`, with `pause` stopping
     the arm where a pausable constraint binds); the start height is the hand's z at the first policy step."""
@@ -369,7 +375,7 @@ def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
         if not active:
             return action
         return filter_actions(active, action, z, start["z"], speed_threshold, metres_per_unit, decay, margin,
-                              pause)
+                              pause, speed_margin)
 
     return hook
 

@@ -34,13 +34,14 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 SAME_RUN_KEYS = ("model", "model_inference", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env",
                  "constraint", "window", "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb",
                  "perturb_start", "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause",
-                 "episode_noise")
+                 "episode_noise", "speed_margin")
 SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
               "box": "state", "passes": 3, "height_margin": 0.0, "pause": False, "episode_noise": False,
-              "model_inference": None}  # None: not recorded, not compared (runs before 2026-12-02 evening)
+              "model_inference": None,  # None: not recorded, not compared (runs before 2026-12-02 evening)
+              "speed_margin": 0.1}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -92,6 +93,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         raise UsageError(f"barrier_decay must be in (0, 1], got {cfg.barrier_decay}")
     if bounds_actions and not 0 <= float(cfg.height_margin) <= 0.1:
         raise UsageError(f"height_margin must be in [0, 0.1] m, got {cfg.height_margin}")
+    if bounds_actions and not 0 <= float(cfg.speed_margin) < 1:
+        raise UsageError(f"speed_margin must be in [0, 1) (a share of the speed threshold), got {cfg.speed_margin}")
     if cfg.pause:
         _check_pause(cfg, constraints)
     run = probes_run(cfg) if cfg.method in STEERING else None
@@ -119,7 +122,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
                     speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
                     metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
-                    height_margin=float(cfg.height_margin), passes=int(cfg.passes), pause=bool(cfg.pause))
+                    height_margin=float(cfg.height_margin), speed_margin=float(cfg.speed_margin),
+                    passes=int(cfg.passes), pause=bool(cfg.pause))
 
 
 def _check_pause(cfg: DictConfig, constraints: tuple) -> None:

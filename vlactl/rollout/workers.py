@@ -132,7 +132,7 @@ def episode_hooks(spec: RunSpec, constraint) -> list:
     plan = spec.steering
     if plan.method == "filter":
         hooks.append(filter_hook(constraint, plan.speed_threshold, plan.metres_per_unit, plan.barrier_decay,
-                                 plan.height_margin, plan.pause))
+                                 plan.height_margin, plan.pause, plan.speed_margin))
     if spec.perturbation is not None:
         hooks.append(spec.perturbation.hook())
     return hooks
