@@ -61,7 +61,8 @@ def test_gripper_is_drawn_as_closure_and_every_condition_has_its_panel(tmp_path)
     titles = [ax.get_title() for ax in fig.axes if ax.axison]
     assert titles == ["gripper=closed", "gripper=open", "height=high"]
     closed = next(ax for ax in fig.axes if ax.get_title() == "gripper=closed")
-    assert [t.get_text() for t in closed.get_legend().get_texts()] == ["control", "filter"]
+    assert closed.get_legend_handles_labels()[1] == ["control", "filter"]  # the methods this panel draws
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["none", "control", "filter"]  # one legend, below
 
 
 def fake_run_of_two(root, seed=9):
@@ -92,7 +93,7 @@ def test_a_run_under_two_constraints_is_drawn_in_each_panel_under_its_full_name(
     assert len(steps[(steps["method"] == both) & (steps["feature"] == "speed")]) == 6 * 5
     fig = figure_success_vs_satisfaction(episodes)
     panel = next(ax for ax in fig.axes if ax.get_title() == "height=high")
-    assert [t.get_text() for t in panel.get_legend().get_texts()] == ["control", both]
+    assert panel.get_legend_handles_labels()[1] == ["control", both]
     result = CliRunner().invoke(app, ["plot", "rollouts", f"root={tmp_path}", "formats=[png]"])
     assert result.exit_code == 0, result.output
     for name in ("violins_height", "violins_speed", "success_vs_satisfaction"):

@@ -154,7 +154,10 @@ def figure_success_vs_satisfaction(episodes: pd.DataFrame):
             ax.set_ylim(-0.05, 1.05)
             ax.set_xlabel("constraint satisfaction")
             ax.set_ylabel("task success rate")
-            ax.legend(fontsize=6, loc="best")
+    # one legend under the panels: inside a panel it can hide a method's point
+    drawn = {label: handle for ax in axes.flat for handle, label in zip(*ax.get_legend_handles_labels())}
+    shown = [m for m in methods if m in drawn]
+    fig.legend([drawn[m] for m in shown], shown, loc="outside lower center", ncols=min(len(shown), 6), fontsize=8)
     return fig
 
 
