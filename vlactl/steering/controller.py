@@ -82,26 +82,23 @@ def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: floa
     need_lo, need_hi = (torch.where(relative, bound, bound - zeta) for bound in (lo, hi))
     gram = wd @ wd.mT  # [k, k]
     scale = 1 + zeta.abs().amax(-1)
-    rows = x.shape[0]
-    best_norm = torch.full((rows,), torch.inf, dtype=torch.float64)
-    best_violation = torch.full_like(best_norm, torch.inf)
-    best_coef = torch.zeros(rows, k, dtype=torch.float64)  # u = coef @ W
-    for sides in itertools.product((0, -1, 1), repeat=k):  # per probe: free, at its lower bound, at its upper bound
-        active = [i for i, side in enumerate(sides) if side]
-        coef = torch.zeros(rows, k, dtype=torch.float64)
-        if active:
-            target = torch.stack([need_lo[:, i] if sides[i] < 0 else need_hi[:, i] for i in active], -1)
-            if not torch.isfinite(target).all():
-                continue  # an infinite bound is never active
-            coef[:, active] = target @ torch.linalg.pinv(gram[active][:, active]).mT
-        change = coef @ gram  # W u for u = coef @ W
-        violation = ((need_lo - change).clamp(min=0) + (change - need_hi).clamp(min=0)).amax(-1) / scale
-        norm = (change * coef).sum(-1)  # ||u||^2
-        feasible = violation <= tol
-        better = torch.where(feasible, norm < best_norm, (best_norm == torch.inf) & (violation < best_violation))
-        best_norm = torch.where(feasible & better, norm, best_norm)
-        best_violation = torch.where(better, violation, best_violation)
-        best_coef = torch.where(better[:, None], coef, best_coef)
+    # every active set at once (per probe: free, at its lower bound, at its upper bound), in one batch: the
+    # pseudo-inverse of the Gram matrix with the free probes' rows and columns zeroed is the active block's own
+    sides = torch.tensor(list(itertools.product((0, -1, 1), repeat=k)), dtype=torch.int64)  # [C, k]
+    mask = (sides != 0).to(torch.float64)
+    block_inverse = torch.linalg.pinv(mask[:, :, None] * gram * mask[:, None, :])  # [C, k, k]
+    target = torch.where(sides[:, None] < 0, need_lo, torch.where(sides[:, None] > 0, need_hi, 0.0))  # [C, B, k]
+    usable = torch.isfinite(target).flatten(1).all(-1)  # an infinite bound is never active
+    coef = torch.where(usable[:, None, None], target, 0.0) @ block_inverse.mT  # [C, B, k], u = coef @ W
+    change = coef @ gram  # W u
+    violation = ((need_lo - change).clamp(min=0) + (change - need_hi).clamp(min=0)).amax(-1) / scale  # [C, B]
+    norm = (change * coef).sum(-1)  # ||u||^2
+    violation = torch.where(usable[:, None], violation, torch.inf)
+    feasible = violation <= tol
+    # the least norm among the feasible sets; where none is feasible, the least violation (first on ties)
+    pick = torch.where(feasible.any(0), torch.where(feasible, norm, torch.inf).argmin(0), violation.argmin(0))
+    best_coef = coef[pick, torch.arange(coef.shape[1])]
+    best_norm = torch.where(feasible.any(0), norm[pick, torch.arange(coef.shape[1])], torch.inf)
     u = (best_coef @ wd).to(x.dtype)
     return _result(x, wd, bd, u, feasible=best_norm < torch.inf)
 
