@@ -95,12 +95,11 @@ def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: floa
     norm = (change * coef).sum(-1)  # ||u||^2
     violation = torch.where(usable[:, None], violation, torch.inf)
     feasible = violation <= tol
+    solved = feasible.any(0)  # [B]
     # the least norm among the feasible sets; where none is feasible, the least violation (first on ties)
-    pick = torch.where(feasible.any(0), torch.where(feasible, norm, torch.inf).argmin(0), violation.argmin(0))
-    best_coef = coef[pick, torch.arange(coef.shape[1])]
-    best_norm = torch.where(feasible.any(0), norm[pick, torch.arange(coef.shape[1])], torch.inf)
-    u = (best_coef @ wd).to(x.dtype)
-    return _result(x, wd, bd, u, feasible=best_norm < torch.inf)
+    pick = torch.where(solved, torch.where(feasible, norm, torch.inf).argmin(0), violation.argmin(0))
+    u = (coef[pick, torch.arange(coef.shape[1])] @ wd).to(x.dtype)
+    return _result(x, wd, bd, u, feasible=solved)
 
 
 def fixed_alpha(x: torch.Tensor, w: torch.Tensor, b, alpha: float) -> Control:
