@@ -191,13 +191,16 @@ def two_constraint_steps(repeats: int) -> None:
             agent.act(obs)
         return step
 
-    hold = ConstrainedAgent(vla, constraints, replace(plan, speed_threshold=1e3))
+    def with_threshold(threshold):
+        return replace(plan, bounds=replace(plan.bounds, speed_threshold=threshold))
+
+    hold = ConstrainedAgent(vla, constraints, with_threshold(1e3))
     hold.reset(env, seen(1.0))  # start height 1.0 m
     replan(hold, 1.2)()
     speed = hold.readings[0]["action_before_speed"]  # the unsteered commanded speed: the break case asks for 80% of it
-    threshold = 0.8 * speed * plan.metres_per_unit / CONTROL_DT
+    threshold = 0.8 * speed * plan.bounds.metres_per_unit / CONTROL_DT
     agents = {"plain": VLAAgent(vla), "bounds hold": hold,
-              "bounds break": ConstrainedAgent(vla, constraints, replace(plan, speed_threshold=threshold))}
+              "bounds break": ConstrainedAgent(vla, constraints, with_threshold(threshold))}
     for agent in agents.values():
         agent.reset(env, seen(1.0))
     steps = {"plain": replan(agents["plain"], 1.0), "bounds hold": replan(agents["bounds hold"], 1.2),

@@ -212,15 +212,16 @@ def test_several_constraints_under_control_are_each_bounded_and_named(probes, tm
 
 
 def test_several_constraints_under_the_filter_keep_both_bounds_where_they_can(probes, tmp_path):
-    from vlactl.rollout.constraints import action_bound, parse_constraints
+    from vlactl.rollout.constraints import Bounds, action_bound, parse_constraints
 
     summary = rollout(tmp_path, "method=filter", *BOTH, "window=null")
     steps = pd.read_parquet(tmp_path / "random_libero_spatial_height-high_speed-low_filter" / "steps.parquet")
     high, low = parse_constraints("height=high,speed=low")
     feasible = 0
     for row in steps.itertuples():
-        lo = action_bound(high, row.z, steps["z"].iloc[0], 0.012)[0]
-        fast = action_bound(low, row.z, 0.02, 0.012)[1]
+        bounds = Bounds(speed_threshold=0.02, metres_per_unit=0.012)
+        lo = action_bound(high, row.z, steps["z"].iloc[0], bounds)[0]
+        fast = action_bound(low, row.z, 0.02, bounds)[1]
         if lo <= fast:  # a rise the speed bound allows
             feasible += 1
             assert row.dz >= lo - 1e-9 and np.linalg.norm([row.dx, row.dy, row.dz]) <= fast + 1e-9

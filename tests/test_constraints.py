@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from vlactl.errors import UsageError
-from vlactl.rollout.constraints import (KINDS, Constraint, action_bound, box, constraint_name, filter_actions,
+from vlactl.rollout.constraints import (KINDS, Bounds, Constraint, action_bound, box, constraint_name, filter_actions,
                                        held_by_default, judge_all, judge_steps, parse_constraint, parse_constraints,
                                        prompted, start_gripper)
 
@@ -126,21 +126,23 @@ def test_several_constraints_are_judged_each_in_its_own_window():
 
 def test_filter_of_height_and_speed_satisfies_both_where_it_can():
     high, low = parse_constraints("[height=high,speed=low]")
-    z, z0, threshold, scale = 0.995, 1.0, 0.1, 0.01  # below the start height: the barrier asks for a rise
-    lo = action_bound(high, z, z0, scale)[0]
-    fast = action_bound(low, z, threshold, scale)[1]
+    z, z0, threshold = 0.995, 1.0, 0.1  # below the start height: the barrier asks for a rise
+    bounds = Bounds(speed_threshold=threshold, metres_per_unit=0.01)
+    lo = action_bound(high, z, z0, bounds)[0]
+    fast = action_bound(low, z, threshold, bounds)[1]
     assert lo == pytest.approx(0.25) and fast == pytest.approx(0.45)  # 10% inside the threshold
     a = np.array([0.6, 0.0, -0.5, 0.1, 0.0, 0.0, -1.0])  # too fast and going down
-    out = filter_actions((high, low), a, z, z0, threshold, scale)
+    out = filter_actions((high, low), a, z, z0, bounds)
     assert out[2] >= lo - 1e-9 and np.linalg.norm(out[:3]) <= fast + 1e-9 and np.array_equal(out[3:], a[3:])
     assert out[2] == pytest.approx(lo) and np.linalg.norm(out[:3]) == pytest.approx(fast)  # both bounds bind
     assert out[1] == 0.0 and out[0] == pytest.approx(np.sqrt(fast ** 2 - lo ** 2))  # x kept as much as it can be
     fine = np.array([0.1, 0.1, 0.3, 0.0, 0.0, 0.0, 1.0])
-    assert np.array_equal(filter_actions((high, low), fine, z, z0, threshold, scale), fine)  # nothing to change
-    out = filter_actions((high, low), a, 0.98, z0, 0.02, scale)  # needs dz >= 1 at speed <= 0.1: infeasible
-    assert out[2] == pytest.approx(action_bound(high, 0.98, z0, scale)[0]) and out[:2].tolist() == [0.0, 0.0]
+    assert np.array_equal(filter_actions((high, low), fine, z, z0, bounds), fine)  # nothing to change
+    slow = Bounds(speed_threshold=0.02, metres_per_unit=0.01)
+    out = filter_actions((high, low), a, 0.98, z0, slow)  # needs dz >= 1 at speed <= 0.1: infeasible
+    assert out[2] == pytest.approx(action_bound(high, 0.98, z0, slow)[0]) and out[:2].tolist() == [0.0, 0.0]
     gripper, height = parse_constraints("[gripper=closed,height=high]")
-    out = filter_actions((gripper, height), a, z, z0, threshold, scale)
+    out = filter_actions((gripper, height), a, z, z0, bounds)
     assert out[6] == 1.0 and out[2] == pytest.approx(lo)
 
 

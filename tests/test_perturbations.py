@@ -1,13 +1,19 @@
 """Perturbations of the arm (vlactl/env/perturbations.py) and the action-space safety filter (method=filter)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from vlactl.env.perturbations import Perturbation, parse_perturbation, random_perturbation
 from vlactl.errors import UsageError
-from vlactl.rollout.constraints import action_bound, action_quantity, filter_action, parse_constraint, parse_constraints
+from vlactl.rollout.constraints import (Bounds, action_bound, action_quantity, filter_action, parse_constraint,
+                                       parse_constraints)
 from vlactl.rollout.runner import rollout_config, run_rollout
+
+CM = Bounds(speed_threshold=0.2, metres_per_unit=0.01)  # 1 cm a unit of command, the barrier closing half a step
+CM_ABOVE = replace(CM, height_margin=0.01)  # its level 1 cm inside the allowed side
 
 
 class Obs:
@@ -58,13 +64,13 @@ def test_demonstration_perturbations_cover_every_kind_reproducibly():
 
 def test_height_barrier_lets_the_hand_approach_the_start_height_by_the_decay_rate():
     high, low = parse_constraint("height=high"), parse_constraint("height=low")
-    assert action_bound(high, 1.02, 1.0, 0.01, 0.5) == (pytest.approx(-1.0), np.inf)  # may close half of 2 cm
-    assert action_bound(low, 0.98, 1.0, 0.01, 0.5)[1] == pytest.approx(1.0)
-    assert action_bound(high, 0.99, 1.0, 0.01, 0.5)[0] == pytest.approx(0.5)  # below the bound: must move back up
+    assert action_bound(high, 1.02, 1.0, CM) == (pytest.approx(-1.0), np.inf)  # may close half of 2 cm
+    assert action_bound(low, 0.98, 1.0, CM)[1] == pytest.approx(1.0)
+    assert action_bound(high, 0.99, 1.0, CM)[0] == pytest.approx(0.5)  # below the bound: must move back up
     a = np.array([0.3, 0.2, -0.9, 0, 0, 0, -1.0])
-    out = filter_action(high, a, 1.01, 1.0, 0.01, 0.5)
+    out = filter_action(high, a, 1.01, 1.0, CM)
     assert out[2] == pytest.approx(-0.5) and np.array_equal(np.delete(out, 2), np.delete(a, 2))
-    assert np.array_equal(filter_action(high, a * [1, 1, -1, 1, 1, 1, 1], 1.02, 1.0, 0.01), a * [1, 1, -1, 1, 1, 1, 1])
+    assert np.array_equal(filter_action(high, a * [1, 1, -1, 1, 1, 1, 1], 1.02, 1.0, CM), a * [1, 1, -1, 1, 1, 1, 1])
 
 
 @pytest.mark.parametrize("value", ["high", "low"])
@@ -78,7 +84,7 @@ def test_height_quantity_keeps_the_barrier_at_every_step_of_the_chunk(value):
         z = z0 + sign * rng.uniform(-0.01, 0.05)
         chunk = np.zeros((5, 7))
         chunk[:, 2] = rng.normal(0.0, 1.0, 5)
-        lo, hi = action_bound(constraint, z, z0, s, decay, steps=5)
+        lo, hi = action_bound(constraint, z, z0, Bounds(metres_per_unit=s, decay=decay), steps=5)
         q = action_quantity(constraint, chunk, decay)
         heights = sign * (z + s * np.cumsum(chunk[:, 2]) - z0)
         kept = bool(np.all(heights >= (1 - decay) ** np.arange(1, 6) * sign * (z - z0) - 1e-12))
@@ -86,27 +92,27 @@ def test_height_quantity_keeps_the_barrier_at_every_step_of_the_chunk(value):
     assert agree == 400
     early_dip = np.zeros((5, 7))
     early_dip[:, 2] = [-2.0, 0.5, 0.5, 0.5, 0.5] if value == "high" else [2.0, -0.5, -0.5, -0.5, -0.5]
-    lo, hi = action_bound(constraint, z0 + sign * 0.02, z0, s, decay, steps=5)
+    lo, hi = action_bound(constraint, z0 + sign * 0.02, z0, Bounds(metres_per_unit=s, decay=decay), steps=5)
     assert lo <= early_dip[:, 2].mean() <= hi and not lo <= action_quantity(constraint, early_dip, decay) <= hi
 
 
 def test_speed_filter_scales_the_translation_along_its_direction():
     low, high = parse_constraint("speed=low"), parse_constraint("speed=high")
     a = np.array([0.6, 0.8, 0.0, 0.1, 0, 0, 1.0])  # norm 1.0 -> 0.01 m a step = 0.2 m/s at 20 Hz
-    slowed = filter_action(low, a, 1.0, 0.1, 0.01)
-    # 0.1 m/s is 0.5 units; the bound lies SPEED_MARGIN inside it: 0.45 slow, 0.55 fast
+    slowed = filter_action(low, a, 1.0, 0.1, CM)
+    # 0.1 m/s is 0.5 units; the bound lies speed_margin (0.1) inside it: 0.45 slow, 0.55 fast
     assert np.linalg.norm(slowed[:3]) == pytest.approx(0.45) and np.allclose(slowed[:3] / 0.45, a[:3])
-    assert np.array_equal(filter_action(high, a, 1.0, 0.1, 0.01), a)
-    assert np.linalg.norm(filter_action(high, a * 0.1, 1.0, 0.1, 0.01)[:3]) == pytest.approx(0.55)
+    assert np.array_equal(filter_action(high, a, 1.0, 0.1, CM), a)
+    assert np.linalg.norm(filter_action(high, a * 0.1, 1.0, 0.1, CM)[:3]) == pytest.approx(0.55)
     # speed_margin moves the bound further inside: 0.5 units x (1 -+ 0.3)
-    assert np.linalg.norm(filter_action(low, a, 1.0, 0.1, 0.01, speed_margin=0.3)[:3]) == pytest.approx(0.35)
-    assert action_bound(high, 1.0, 0.1, 0.01, speed_margin=0.3) == (pytest.approx(0.65), np.inf)
+    assert np.linalg.norm(filter_action(low, a, 1.0, 0.1, replace(CM, speed_margin=0.3))[:3]) == pytest.approx(0.35)
+    assert action_bound(high, 1.0, 0.1, replace(CM, speed_margin=0.3)) == (pytest.approx(0.65), np.inf)
 
 
 def test_gripper_filter_forces_the_command():
     a = np.zeros(7)
-    assert filter_action(parse_constraint("gripper=closed"), a, 1.0, 0.0, 0.01)[6] == 1.0
-    assert filter_action(parse_constraint("gripper=open"), a, 1.0, 0.0, 0.01)[6] == -1.0
+    assert filter_action(parse_constraint("gripper=closed"), a, 1.0, 0.0, CM)[6] == 1.0
+    assert filter_action(parse_constraint("gripper=open"), a, 1.0, 0.0, CM)[6] == -1.0
 
 
 def run(root, *extra):
@@ -144,9 +150,9 @@ def test_bad_filter_or_perturbation_settings_fail_before_any_worker(tmp_path, ex
 
 def test_height_margin_moves_the_barrier_inside_the_allowed_side():
     high, low = parse_constraint("height=high"), parse_constraint("height=low")
-    assert action_bound(high, 1.0, 1.0, 0.01, 0.5, margin=0.01)[0] == pytest.approx(0.5)  # at z0: must rise
-    assert action_bound(low, 1.0, 1.0, 0.01, 0.5, margin=0.01)[1] == pytest.approx(-0.5)  # at z0: must sink
-    assert action_bound(high, 1.03, 1.0, 0.01, 0.5, margin=0.01)[0] == pytest.approx(-1.0)
+    assert action_bound(high, 1.0, 1.0, CM_ABOVE)[0] == pytest.approx(0.5)  # at z0: must rise
+    assert action_bound(low, 1.0, 1.0, CM_ABOVE)[1] == pytest.approx(-0.5)  # at z0: must sink
+    assert action_bound(high, 1.03, 1.0, CM_ABOVE)[0] == pytest.approx(-1.0)
 
 
 def test_pause_stops_the_arm_only_where_a_pausable_constraint_binds():
@@ -154,16 +160,16 @@ def test_pause_stops_the_arm_only_where_a_pausable_constraint_binds():
 
     high, low = parse_constraint("height=high"), parse_constraint("speed=low")
     down = np.array([0.5, -0.4, -1.0, 0.1, 0.2, 0.0, -1.0])  # on its way across and down: breaks the barrier
-    paused = filter_actions([high], down, 1.0, 1.0, 0.2, 0.01, 0.5, margin=0.01, pause=True)
+    paused = filter_actions([high], down, 1.0, 1.0, CM_ABOVE, pause=True)
     assert np.allclose(paused[[0, 1, 3, 4, 5]], 0.0) and paused[6] == -1.0
-    assert paused[2] == pytest.approx(action_bound(high, 1.0, 1.0, 0.01, 0.5, margin=0.01)[0])  # the rise it asks
-    above = filter_actions([high], down, 1.015, 1.0, 0.2, 0.01, 0.5, margin=0.01, pause=True)
+    assert paused[2] == pytest.approx(action_bound(high, 1.0, 1.0, CM_ABOVE)[0])  # the rise it asks
+    above = filter_actions([high], down, 1.015, 1.0, CM_ABOVE, pause=True)
     assert np.allclose(above[:6], 0.0)  # above the level nothing need rise: a full stop
     across = np.array([0.5, -0.4, 0.2, 0.0, 0.0, 0.0, 1.0])  # keeps the barrier: untouched
-    assert np.array_equal(filter_actions([high], across, 1.0, 1.0, 0.2, 0.01, pause=True), across)
-    fast = filter_actions([low], down, 1.0, 1.0, 0.2, 0.01, pause=True)
+    assert np.array_equal(filter_actions([high], across, 1.0, 1.0, CM, pause=True), across)
+    fast = filter_actions([low], down, 1.0, 1.0, CM, pause=True)
     assert np.allclose(fast[:6], 0.0)  # speed=low: stopped, not scaled
-    closed = filter_actions(parse_constraints("gripper=closed,height=high"), down, 1.0, 1.0, 0.2, 0.01, pause=True)
+    closed = filter_actions(parse_constraints("gripper=closed,height=high"), down, 1.0, 1.0, CM, pause=True)
     assert np.allclose(closed[[0, 1]], 0.0) and closed[6] == 1.0  # the gripper still forced
 
 

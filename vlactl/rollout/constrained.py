@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import (GRIPPER_BOUND, SPEED_MARGIN, Constraint, action_bound, action_quantity,
-                                       as_constraints, box, prompted, push_weights, reference)
+from vlactl.rollout.constraints import (GRIPPER_BOUND, Bounds, Constraint, action_bound, action_quantity,
+                                       as_constraints, box, prompted, push_weights)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -55,11 +55,7 @@ class Steering:
     directions: dict | None = None  # meandiff: layer -> unit direction towards the 'closed / high' side
     alpha: float = 4.0
     logit_margin: float = 2.0
-    speed_threshold: float = 0.0
-    metres_per_unit: float = 0.0  # filter, box=action: hand motion per unit of translation command per step
-    barrier_decay: float = 0.5
-    height_margin: float = 0.0  # filter, box=action: metres the height barrier's level lies inside the allowed side
-    speed_margin: float = SPEED_MARGIN  # filter, box=action: share of the threshold the speed bound lies inside it
+    bounds: Bounds = Bounds()  # the speed threshold (judging, box=state) and, for filter and box=action, the rest
     box: str = "action"  # control: bound the predicted action (action) or the probe's reading of the state (state)
     passes: int = 5  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
@@ -106,8 +102,7 @@ class ConstrainedAgent(VLAAgent):
         super().reset(env, obs, seed)
         if self.steering.method == "prompt":
             self._instruction = prompted(env.instruction, self.constraints)
-        self._levels = {c.feature: reference(c, float(obs.state[2]), self.steering.speed_threshold)
-                        for c in self.constraints}
+        self._levels = {c.feature: self.steering.bounds.level(c, float(obs.state[2])) for c in self.constraints}
         level = self._levels[self.constraint.feature]
         zmin, zmax = box(self.constraint, level, self.steering.logit_margin)
         tol = self.steering.hold_tolerance
@@ -143,9 +138,8 @@ class ConstrainedAgent(VLAAgent):
         actions = self.predict(obs)
         drawn = self.vla.sampling_state()
         active = named + self._gripper_kept(actions, t)
-        bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels.get(c.feature, 0.0),
-                                          plan.metres_per_unit, plan.barrier_decay, self.replan_every,
-                                          plan.height_margin, plan.speed_margin) for c in active}
+        bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels.get(c.feature, 0.0), plan.bounds,
+                                          self.replan_every) for c in active}
         before = {c.feature: self._quantity(c, actions) for c in active}
         self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
         row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
@@ -227,7 +221,7 @@ class ConstrainedAgent(VLAAgent):
         return actions, shift, passes, log
 
     def _quantity(self, constraint: Constraint, actions) -> float:
-        return action_quantity(constraint, actions, self.steering.barrier_decay)
+        return action_quantity(constraint, actions, self.steering.bounds.decay)
 
     def _gripper_kept(self, actions, t: int) -> list:
         """A held gripper read-out kept on the action itself: when the constraints leave the gripper alone and the

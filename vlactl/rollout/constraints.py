@@ -182,45 +182,58 @@ def box(constraint: Constraint, level: float, logit_margin: float = 2.0) -> tupl
 
 
 GRIPPER_BOUND = 0.5
-SPEED_MARGIN = 0.1  # the speed bound lies this share inside the threshold: a hand held exactly at it wobbles across
-                    # (filter speed=low at the threshold itself: mean speed 0.194 m/s, 59% of window steps satisfied);
-                    # the rollout's `speed_margin`
-BARRIER_DECAY = 0.5  # share of the remaining distance to the bound a step may close (discrete-time barrier rate)
 
 
-def action_bound(constraint: Constraint, z: float, level: float, metres_per_unit: float,
-                 decay: float = BARRIER_DECAY, steps: int = 1, margin: float = 0.0,
-                 speed_margin: float = SPEED_MARGIN) -> tuple[float, float]:
+@dataclass(frozen=True)
+class Bounds:
+    """What turns a constraint into a bound on the action (`action_bound`), one run's settings: the speed threshold
+    (m/s) and the hand's motion per unit of translation command per step (`metres_per_unit`), both measured from the
+    demonstrations, the height barrier's rate (`decay`: the share of the remaining distance to its level a step may
+    close) and the metres its level lies inside the allowed side (`height_margin`), and the share of the threshold
+    the speed bound lies inside it (`speed_margin`: a hand held exactly at the threshold wobbles across it; filter
+    speed=low at the threshold itself: mean speed 0.194 m/s, 59% of window steps satisfied)."""
+
+    speed_threshold: float = 0.0
+    metres_per_unit: float = 0.0
+    decay: float = 0.5
+    height_margin: float = 0.0
+    speed_margin: float = 0.1
+
+    def level(self, constraint: Constraint, start_z: float) -> float:
+        return reference(constraint, start_z, self.speed_threshold)
+
+
+def action_bound(constraint: Constraint, z: float, level: float, bounds: Bounds, steps: int = 1) -> tuple[float, float]:
     """[lo, hi] on the action quantity the constraint acts on (`action_quantity`), for the next `steps` actions
     (docs/steering.md):
     - gripper: every gripper command about to be executed past +-0.5 on the wanted side (it then executes as close /
       open, not as hold);
     - height: the mean commanded dz, as a discrete-time barrier on h = +-(z - z0) >= 0: with z' = z + s dz (s =
-      `metres_per_unit`, measured from the demonstrations), h' >= (1 - decay) h per step, i.e. over k steps for high
+      `bounds.metres_per_unit`), h' >= (1 - decay) h per step, i.e. over k steps for high
       mean dz >= -(1 - (1 - decay)^k) (z - z0) / (k s) (k = 1: dz >= -decay (z - z0) / s), and the mirror image for
       low: the hand may approach the start height by `decay` of its distance per step, so it slows towards the bound
       instead of bouncing off it;
     - speed: the commanded translation's norm, |(dx, dy, dz)| <= (low) or >= (high) threshold dt / s, the share
       `speed_margin` inside the threshold (the hand's speed per unit of command varies from step to step).
-    `margin` (metres) moves the height barrier's level that far to the allowed side of z0, so a hand that settles at
-    the level is judged satisfied (z >= z0) despite the few millimetres it wobbles. A bound the formula puts on the
-    wrong side of 0 (the hand already past the level) asks for a move back."""
+    `height_margin` (metres) moves the height barrier's level that far to the allowed side of z0, so a hand that
+    settles at the level is judged satisfied (z >= z0) despite the few millimetres it wobbles. A bound the formula
+    puts on the wrong side of 0 (the hand already past the level) asks for a move back."""
     from vlactl.env.features import CONTROL_DT
 
     if constraint.feature == "gripper":  # past +-0.5: the command snaps to close / open, not to hold (0)
         return (GRIPPER_BOUND, math.inf) if constraint.upper else (-math.inf, -GRIPPER_BOUND)
     if constraint.feature == "height":
-        rate = (1 - (1 - decay) ** steps) / (steps * metres_per_unit)
-        level = level + margin if constraint.upper else level - margin
+        rate = (1 - (1 - bounds.decay) ** steps) / (steps * bounds.metres_per_unit)
+        level = level + bounds.height_margin if constraint.upper else level - bounds.height_margin
         if constraint.upper:
             return (-rate * (z - level), math.inf)
         return (-math.inf, rate * (level - z))
-    inside = 1 + speed_margin if constraint.upper else 1 - speed_margin
-    norm = inside * level * CONTROL_DT / metres_per_unit
+    inside = 1 + bounds.speed_margin if constraint.upper else 1 - bounds.speed_margin
+    norm = inside * level * CONTROL_DT / bounds.metres_per_unit
     return (norm, math.inf) if constraint.upper else (0.0, norm)
 
 
-def action_quantity(constraint: Constraint, actions, decay: float = BARRIER_DECAY):
+def action_quantity(constraint: Constraint, actions, decay: float = Bounds.decay):
     """What `action_bound` bounds, over the actions about to be executed ([k, 7]): the gripper command least on the
     wanted side (every one of them is judged, so every one must snap to close / open), the mean translation norm,
     or for height the barrier's worst step: every step j <= k of the chunk must keep the barrier (the hand is judged
@@ -256,15 +269,14 @@ def push_weights(constraint: Constraint, actions) -> dict[str, float]:
     return dict(zip(features, map(float, unit)))
 
 
-def filter_action(constraint: Constraint, action, z: float, level: float, metres_per_unit: float,
-                  decay: float = BARRIER_DECAY, margin: float = 0.0, speed_margin: float = SPEED_MARGIN):
+def filter_action(constraint: Constraint, action, z: float, level: float, bounds: Bounds):
     """`method=filter`: the executed action changed as little as possible (in L2) so that its constrained quantity
     lies in `action_bound`: the gripper command forced to open / close, dz clipped to the barrier, the translation
     scaled to the speed bound (along its own direction). The oracle an action-space safety filter gives."""
     import numpy as np
 
     out = np.array(action, dtype=np.float64)
-    lo, hi = action_bound(constraint, z, level, metres_per_unit, decay, margin=margin, speed_margin=speed_margin)
+    lo, hi = action_bound(constraint, z, level, bounds)
     if constraint.feature == "gripper":
         out[6] = 1.0 if constraint.upper else -1.0
     elif constraint.feature == "height":
@@ -297,9 +309,7 @@ def pause_action(action, height_bound: tuple[float, float] | None = None):
     return out
 
 
-def filter_actions(constraints, action, z: float, start_z: float, speed_threshold: float, metres_per_unit: float,
-                   decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False,
-                   speed_margin: float = SPEED_MARGIN):
+def filter_actions(constraints, action, z: float, start_z: float, bounds: Bounds, pause: bool = False):
     """`filter_action` for several constraints at once. The gripper command is forced apart from the translation.
     Height and speed both bound the translation: the result is the one nearest the action (L2) that keeps dz in the
     barrier and the norm in the speed bound, among the speed filter alone, the height filter alone, and dz clipped
@@ -313,24 +323,19 @@ def filter_actions(constraints, action, z: float, start_z: float, speed_threshol
     constraints = as_constraints(constraints)
     by_feature = {c.feature: c for c in constraints}
     if pause:
-        bounds = {c.feature: action_bound(c, z, reference(c, start_z, speed_threshold), metres_per_unit, decay,
-                                          margin=margin, speed_margin=speed_margin)
-                  for c in constraints if pausable(c)}
-        if any(not lo <= action_quantity(by_feature[f], action, decay) <= hi for f, (lo, hi) in bounds.items()):
-            out = pause_action(action, bounds.get("height"))
-            return filter_action(by_feature["gripper"], out, z, 0.0, metres_per_unit) if "gripper" in by_feature \
-                else out
+        binding = {c.feature: action_bound(c, z, bounds.level(c, start_z), bounds) for c in constraints if pausable(c)}
+        if any(not lo <= action_quantity(by_feature[f], action, bounds.decay) <= hi for f, (lo, hi) in binding.items()):
+            out = pause_action(action, binding.get("height"))
+            return filter_action(by_feature["gripper"], out, z, 0.0, bounds) if "gripper" in by_feature else out
     if len(constraints) == 1 or not {"height", "speed"} <= set(by_feature):
         out = np.array(action, dtype=np.float64)
         for c in constraints:
-            out = filter_action(c, out, z, reference(c, start_z, speed_threshold), metres_per_unit, decay, margin,
-                                speed_margin)
+            out = filter_action(c, out, z, bounds.level(c, start_z), bounds)
         return out
     height, speed = by_feature["height"], by_feature["speed"]
-    out = filter_action(by_feature["gripper"], action, z, 0.0, metres_per_unit) if "gripper" in by_feature \
+    out = filter_action(by_feature["gripper"], action, z, 0.0, bounds) if "gripper" in by_feature \
         else np.array(action, dtype=np.float64)
-    (lo, hi), (slow, fast) = (action_bound(c, z, reference(c, start_z, speed_threshold), metres_per_unit, decay,
-                                           margin=margin, speed_margin=speed_margin) for c in (height, speed))
+    (lo, hi), (slow, fast) = (action_bound(c, z, bounds.level(c, start_z), bounds) for c in (height, speed))
     v = out[:3].copy()
 
     def along(w):  # the speed filter: scaled along its own direction
@@ -359,9 +364,7 @@ def filter_actions(constraints, action, z: float, start_z: float, speed_threshol
     return out
 
 
-def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
-                decay: float = BARRIER_DECAY, margin: float = 0.0, pause: bool = False,
-                speed_margin: float = SPEED_MARGIN):
+def filter_hook(constraint, bounds: Bounds, pause: bool = False):
     """A fresh per-episode step hook for `run_episode` that filters every action of the constraint window (several
     constraints: each over its own window, together where windows overlap, `filter_actions`, with `pause` stopping
     the arm where a pausable constraint binds); the start height is the hand's z at the first policy step."""
@@ -374,8 +377,7 @@ def filter_hook(constraint, speed_threshold: float, metres_per_unit: float,
         active = [c for c in constraints if t < c.window]
         if not active:
             return action
-        return filter_actions(active, action, z, start["z"], speed_threshold, metres_per_unit, decay, margin,
-                              pause, speed_margin)
+        return filter_actions(active, action, z, start["z"], bounds, pause)
 
     return hook
 

@@ -25,7 +25,7 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering, method_label
-from vlactl.rollout.constraints import (BOXES, START_GRIPPER, as_constraints, constraint_name, held_by_default,
+from vlactl.rollout.constraints import (BOXES, START_GRIPPER, Bounds, as_constraints, constraint_name, held_by_default,
                                        parse_constraints, pausable, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
@@ -119,10 +119,10 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         holds = _hold_probes(cfg, constraints, run, probes)
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraints[0], [p.layer for p in probes]) if meandiff else None
+    bounds = Bounds(speed_threshold=threshold, metres_per_unit=scale, decay=float(cfg.barrier_decay),
+                    height_margin=float(cfg.height_margin), speed_margin=float(cfg.speed_margin))
     return Steering(cfg.method, probes, directions, alpha=float(cfg.alpha), logit_margin=float(cfg.logit_margin),
-                    speed_threshold=threshold, holds=holds, hold_tolerance=float(cfg.hold_tolerance),
-                    metres_per_unit=scale, barrier_decay=float(cfg.barrier_decay), box=str(cfg.box),
-                    height_margin=float(cfg.height_margin), speed_margin=float(cfg.speed_margin),
+                    bounds=bounds, holds=holds, hold_tolerance=float(cfg.hold_tolerance), box=str(cfg.box),
                     passes=int(cfg.passes), pause=bool(cfg.pause))
 
 
@@ -481,8 +481,8 @@ def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int,
         base = parts.stem(source, task, k)
         row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint_name(constraint),
                "method": "none", "start_gripper": "open"}  # judge_source: only runs that start open
-        steps = judge_part(constraint, row, pd.read_parquet(base.with_suffix(".parquet")), plan.speed_threshold, {})
-        parts.write(out, row, steps)
+        steps = pd.read_parquet(base.with_suffix(".parquet"))
+        parts.write(out, row, judge_part(constraint, row, steps, plan.bounds.speed_threshold, {}))
 
 
 def resolve_defaults(cfg: DictConfig) -> None:

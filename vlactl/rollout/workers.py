@@ -116,7 +116,8 @@ def run_batch(batch: Batch) -> None:
         }
         steps = parts.steps_frame(batch.task, k, result)
         if constraint:
-            steps = judge_part(constraint, row, steps, spec.steering.speed_threshold, getattr(agent, "readings", {}))
+            threshold = spec.steering.bounds.speed_threshold
+            steps = judge_part(constraint, row, steps, threshold, getattr(agent, "readings", {}))
         if spec.video:
             from vlactl.rollout.video import step_captions, write_video
 
@@ -131,8 +132,7 @@ def episode_hooks(spec: RunSpec, constraint) -> list:
     hooks = []
     plan = spec.steering
     if plan.method == "filter":
-        hooks.append(filter_hook(constraint, plan.speed_threshold, plan.metres_per_unit, plan.barrier_decay,
-                                 plan.height_margin, plan.pause, plan.speed_margin))
+        hooks.append(filter_hook(constraint, plan.bounds, plan.pause))
     if spec.perturbation is not None:
         hooks.append(spec.perturbation.hook())
     return hooks

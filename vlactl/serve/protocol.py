@@ -15,7 +15,7 @@ Requests (maps with string keys):
 from __future__ import annotations
 
 import json
-from dataclasses import fields
+from dataclasses import asdict, fields
 
 import numpy as np
 
@@ -102,6 +102,8 @@ def encode_steer(constraint: str, window, steering, replan_every, snap_gripper: 
             value = [_probe(p) for p in value]
         elif f.name == "directions" and value is not None:
             value = {layer: d.double().numpy() for layer, d in value.items()}
+        elif f.name == "bounds":
+            value = asdict(value)
         plan[f.name] = value
     return {"constraint": constraint, "window": window, "steering": plan, "replan_every": replan_every,
             "snap_gripper": snap_gripper}
@@ -113,12 +115,13 @@ def decode_steer(message: dict):
     import torch
 
     from vlactl.rollout.constrained import Steering
-    from vlactl.rollout.constraints import parse_constraints
+    from vlactl.rollout.constraints import Bounds, parse_constraints
 
     try:
         plan = dict(message["steering"])
         plan["probes"] = tuple(_unprobe(p) for p in plan["probes"])
         plan["holds"] = tuple(_unprobe(p) for p in plan["holds"])
+        plan["bounds"] = Bounds(**plan["bounds"])
         if plan.get("directions") is not None:
             plan["directions"] = {k: torch.from_numpy(np.array(v)).float() for k, v in plan["directions"].items()}
         steering = Steering(**plan)
