@@ -110,13 +110,16 @@ def test_fine_tuning_starts_from_the_checkpoint_and_refuses_another_architecture
 
 def test_average_policies_writes_the_mean_of_fine_tunes_and_refuses_other_starts(demos, tmp_path):
     """A model soup: two fine-tunes of one start average weight by weight into a checkpoint that loads and predicts;
-    a checkpoint with another normalisation, or a single one, is a one-line error and writes nothing."""
+    the same config written in another layout (the shipped soup's, without a trailing newline) still averages; a
+    checkpoint with another normalisation, or a single one, is a one-line error and writes nothing."""
     start, other = tmp_path / "start", tmp_path / "other"
     run_train_policy(load_config("train_policy", overrides(demos, start, steps=2)))
     tunes = [tmp_path / f"tune{seed}" for seed in (1, 2)]
     for seed, tune in zip((1, 2), tunes):
         run_train_policy(load_config("train_policy", overrides(demos, tune, "hybrid", 2, f"init_from={start}",
                                                                f"seed={seed}", "lr=1e-2")))
+    config = tunes[1] / "checkpoint" / "config.json"
+    config.write_text(json.dumps(json.loads(config.read_text())))
     soup = tmp_path / "soup"
     result = CliRunner().invoke(app, ["average-policies", f"policies=[{tunes[0]},{tunes[1]}]", f"output_dir={soup}"])
     assert result.exit_code == 0, result.output

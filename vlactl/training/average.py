@@ -34,9 +34,14 @@ def run_average_policies(cfg: DictConfig) -> Path:
     folders = [resolve_checkpoint(name) for name in names]
     first = folders[0]
     shared = sorted(p.name for p in first.iterdir() if p.is_file() and p.name not in (WEIGHTS_FILE, PROVENANCE))
+
+    def content(path: Path):
+        """What a checkpoint file says: JSON by value (writers differ in layout and a trailing newline), else bytes."""
+        return json.loads(path.read_text()) if path.suffix == ".json" else path.read_bytes()
+
     for name, folder in zip(names[1:], folders[1:]):
         for file in shared:
-            if not (folder / file).is_file() or (folder / file).read_bytes() != (first / file).read_bytes():
+            if not (folder / file).is_file() or content(folder / file) != content(first / file):
                 raise UsageError(f"{name!r} differs from {names[0]!r} in {file}; only checkpoints of one architecture, "
                                  "normalisation and tokenizer (fine-tunes of one start) can be averaged")
     weights = [load_file(str(folder / WEIGHTS_FILE)) for folder in folders]
