@@ -39,36 +39,39 @@ demo: install
 	  output_root=outputs/demo run_name=hybrid_libero_spatial_height-high
 
 # Rebuild the shipped embedded models from scratch: the libero_spatial demo sets, then each model trained with its
-# own config (conf/model/<name>.yaml) on DATASET_<name>, then, for a model with CONTINUE_<name>, a second run from
-# that checkpoint, for one with ROBUST_<name> a third from that one, and for one with SOUP_<name> the average of the
-# last two checkpoints' weights (`vlactl average-policies`); the last checkpoint is copied into data/policies/, then
-# the probes that ship beside them. The autoregressive model learns from the 50 ordinary episodes per task plus 30
-# noise-injected (DART) ones and trains a second cosine cycle; the hybrid is fine-tuned on recovery demonstrations,
-# that checkpoint fine-tuned again on perturbed ones (the expert's way back after the arm was raised, held, shifted,
-# slowed or its gripper closed, beside ordinary and recovery episodes), and the two fine-tunes averaged: each alone
-# fails on other tasks, the average on fewer (80% and 71% -> 86% on one noise sequence; 73% -> 79% with each
-# episode's own, within noise; docs/models.md). The perturbed set
-# (libero_spatial_robust) is also what the shipped probes are fitted on.
+# own config (conf/model/<name>.yaml) on DATASET_<name>, then each of its STAGES_<name> in order: a fine-tune of the
+# checkpoint so far with TUNE_<name>_<stage>'s options, and for a stage written `<stage>+soup` the uniform average of
+# that fine-tune's weights and those it started from (`vlactl average-policies`, a model soup), which becomes the
+# checkpoint so far; the last one is copied into data/policies/, then the probes that ship beside them.
+# The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones and trains a
+# second cosine cycle. The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way
+# back after the arm was raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes),
+# averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again: each fine-tune
+# alone loses tasks the checkpoint before solved, the average keeps them and most of the way back it learned
+# (docs/models.md). The last perturbed set is also what the shipped probes are fitted on.
 # Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
-CONTINUE_autoregressive ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
-CONTINUE_hybrid ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
-ROBUST_hybrid ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
-SOUP_hybrid ?= yes
-previous_stage = outputs/policies/$(1)$(if $(CONTINUE_$(1)),-continued)
-last_stage = outputs/policies/$(1)$(if $(SOUP_$(1)),-soup,$(if $(ROBUST_$(1)),-robust,$(if $(CONTINUE_$(1)),-continued)))
+STAGES_autoregressive ?= continued
+TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
+STAGES_hybrid ?= continued robust+soup robust3+soup
+TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
+TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
+TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
+# One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands.
+define train_stage
+	$(BIN)/vlactl train-policy model=$(1) init_from=$(current)/checkpoint $(TUNE_$(1)_$(firstword $(subst +, ,$(2)))) \
+	  output_dir=outputs/policies/$(1)-$(firstword $(subst +, ,$(2)))
+	$(if $(findstring +soup,$(2)),$(BIN)/vlactl average-policies output_dir=outputs/policies/$(1)-$(subst +,-,$(2)) \
+	  policies=[$(current)/checkpoint$(comma)outputs/policies/$(1)-$(firstword $(subst +, ,$(2)))/checkpoint])
+	$(eval current := outputs/policies/$(1)-$(if $(findstring +soup,$(2)),$(subst +,-,$(2)),$(2)))
+endef
 define train_policy
 	$(BIN)/vlactl train-policy model=$(1) dataset=$(DATASET_$(1)) output_dir=outputs/policies/$(1)
-	$(if $(CONTINUE_$(1)),$(BIN)/vlactl train-policy model=$(1) init_from=outputs/policies/$(1)/checkpoint \
-	  $(CONTINUE_$(1)) output_dir=outputs/policies/$(1)-continued)
-	$(if $(ROBUST_$(1)),$(BIN)/vlactl train-policy model=$(1) \
-	  init_from=$(call previous_stage,$(1))/checkpoint $(ROBUST_$(1)) \
-	  output_dir=outputs/policies/$(1)-robust)
-	$(if $(SOUP_$(1)),$(BIN)/vlactl average-policies output_dir=outputs/policies/$(1)-soup \
-	  policies=[$(call previous_stage,$(1))/checkpoint$(comma)outputs/policies/$(1)-robust/checkpoint])
-	rm -rf data/policies/$(1).new && cp -r $(call last_stage,$(1))/checkpoint \
+	$(eval current := outputs/policies/$(1))
+	$(foreach stage,$(STAGES_$(1)),$(call train_stage,$(1),$(stage)))
+	rm -rf data/policies/$(1).new && cp -r $(current)/checkpoint \
 	  data/policies/$(1).new && rm -rf data/policies/$(1) && mv data/policies/$(1).new data/policies/$(1)
 
 endef
@@ -84,6 +87,8 @@ policies: install
 	$(call extended_demos,data/demos/libero_spatial_noisy,episodes_per_task=50 noisy_episodes_per_task=30)
 	$(call extended_demos,data/demos/libero_spatial_robust,episodes_per_task=10 recovery_episodes_per_task=10 \
 	  perturbed_episodes_per_task=12)
+	$(call extended_demos,data/demos/libero_spatial_robust3,episodes_per_task=10 recovery_episodes_per_task=5 \
+	  perturbed_episodes_per_task=20)
 	$(foreach m,$(POLICIES),$(call train_policy,$(m)))
 	$(MAKE) probes
 
@@ -94,7 +99,7 @@ policies: install
 # logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale), each measured by
 # `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md).
 # About 15 min a model on 2 cores.
-PROBE_DEMOS ?= data/demos/libero_spatial_robust
+PROBE_DEMOS ?= data/demos/libero_spatial_robust3
 STEER_FEATURES ?= [dx,dy,dz,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
 STEER_FAMILIES ?= fit meandiff covariance
