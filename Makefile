@@ -59,13 +59,15 @@ STAGES_hybrid ?= continued robust+soup robust3+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
-# One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands.
+# One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
+# fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.
+stage_name = $(firstword $(subst +, ,$(1)))
 define train_stage
-	$(BIN)/vlactl train-policy model=$(1) init_from=$(current)/checkpoint $(TUNE_$(1)_$(firstword $(subst +, ,$(2)))) \
-	  output_dir=outputs/policies/$(1)-$(firstword $(subst +, ,$(2)))
+	$(BIN)/vlactl train-policy model=$(1) init_from=$(current)/checkpoint $(TUNE_$(1)_$(call stage_name,$(2))) \
+	  output_dir=outputs/policies/$(1)-$(call stage_name,$(2))
 	$(if $(findstring +soup,$(2)),$(BIN)/vlactl average-policies output_dir=outputs/policies/$(1)-$(subst +,-,$(2)) \
-	  policies=[$(current)/checkpoint$(comma)outputs/policies/$(1)-$(firstword $(subst +, ,$(2)))/checkpoint])
-	$(eval current := outputs/policies/$(1)-$(if $(findstring +soup,$(2)),$(subst +,-,$(2)),$(2)))
+	  policies=[$(current)/checkpoint$(comma)outputs/policies/$(1)-$(call stage_name,$(2))/checkpoint])
+	$(eval current := outputs/policies/$(1)-$(subst +,-,$(2)))
 endef
 define train_policy
 	$(BIN)/vlactl train-policy model=$(1) dataset=$(DATASET_$(1)) output_dir=outputs/policies/$(1)

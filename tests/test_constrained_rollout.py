@@ -217,9 +217,9 @@ def test_several_constraints_under_the_filter_keep_both_bounds_where_they_can(pr
     summary = rollout(tmp_path, "method=filter", *BOTH, "window=null")
     steps = pd.read_parquet(tmp_path / "random_libero_spatial_height-high_speed-low_filter" / "steps.parquet")
     high, low = parse_constraints("height=high,speed=low")
+    bounds = Bounds(speed_threshold=0.02, metres_per_unit=0.012)
     feasible = 0
     for row in steps.itertuples():
-        bounds = Bounds(speed_threshold=0.02, metres_per_unit=0.012)
         lo = action_bound(high, row.z, steps["z"].iloc[0], bounds)[0]
         fast = action_bound(low, row.z, 0.02, bounds)[1]
         if lo <= fast:  # a rise the speed bound allows
