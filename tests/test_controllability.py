@@ -67,6 +67,10 @@ def test_a_row_per_layer_group_and_feature_written_into_the_probe_run(probe_runs
     assert table[table["feature"] == "z"]["cross_share"].isna().all()
     cross = table[table["feature"] == "gripper_action"]["cross_share"].dropna()
     assert ((cross >= 0) & (cross <= 1)).all()
+    # what else each push moves: every predicted action column but the one it steers
+    leaks = table.set_index("feature")[["leak_dx", "leak_dy", "leak_dz", "leak_gripper_action"]]
+    assert leaks.loc["z", "leak_dz"].isna().all() and leaks.loc["gripper_action", "leak_gripper_action"].isna().all()
+    assert leaks.loc["z", ["leak_dx", "leak_gripper_action"]].notna().all().all()
     # every steerable layer reaches the actions: the push moves the prediction
     assert (table["gain"].abs() > 1e-6).all() and (table["u_norm"] > 0).all()
     pd.testing.assert_frame_equal(pd.read_parquet(probes / "controllability.parquet"), table)
@@ -87,7 +91,8 @@ def test_features_measured_apart_add_up_in_the_probe_run(probe_runs, tmp_path):
 
 def test_gain_has_the_sign_of_the_push(probe_runs, tmp_path):
     """A z probe at expert.1 along the direction that raises the predicted dz: raising its reading raises dz (gain
-    > 0); the same probe negated reads the other way, so the same push lowers it (gain < 0)."""
+    > 0); the same probe negated reads the other way, so the same push lowers it (gain < 0). A gripper probe along
+    that direction raises dz too: its leak into dz has the same sign."""
     demos, (source, _) = probe_runs
     vla = tiny_policy("hybrid")
     frames = model_frames(vla, demos, tmp_path / "cache")
@@ -96,18 +101,21 @@ def test_gain_has_the_sign_of_the_push(probe_runs, tmp_path):
     direction /= direction.norm()
     rise = [(_predict(vla, obs, "expert.1", s * 0.05 * direction)[:, 2]).mean() for s in (1, -1)]
     direction *= float(np.sign(rise[0] - rise[1]))
-    gains = []
+    gains, leaks = [], []
     for sign in (1, -1):
         probes = tmp_path / f"probes{sign}"
         shutil.copytree(source, probes)
-        path = probes / "probes" / probe_filename("expert.1", "z")
-        probe = load_probe(path)
-        probe.weight = sign * direction.double()
-        save_probe(probe, path)
-        table = pd.read_parquet(measure(demos, probes, tmp_path / f"map{sign}", "features=[z]", "groups=false",
+        for feature in ("z", "gripper_action"):
+            path = probes / "probes" / probe_filename("expert.1", feature)
+            probe = load_probe(path)
+            probe.weight = sign * direction.double()
+            save_probe(probe, path)
+        table = pd.read_parquet(measure(demos, probes, tmp_path / f"map{sign}", "groups=false",
                                         "targets=[-0.05,0.05]") / "controllability.parquet")
-        gains.append(float(table.set_index("layer").loc["expert.1", "gain"]))
-    assert gains[0] > 0 > gains[1]
+        rows = table[table["layer"] == "expert.1"].set_index("feature")
+        gains.append(float(rows.loc["z", "gain"]))
+        leaks.append(float(rows.loc["gripper_action", "leak_dz"]))
+    assert gains[0] > 0 > gains[1] and leaks[0] > 0 > leaks[1]
 
 
 def test_an_interrupted_run_resumes_from_its_finished_batches(probe_runs, tmp_path, monkeypatch):

@@ -9,6 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from vlactl.steering.directions import direction, partial_directions
 from vlactl.steering.logistic import fit_logistic
 from vlactl.steering.metrics import classification_metrics, regression_metrics, robustness
 from vlactl.steering.probes import LOGISTIC, REGRESSION, ProbeSettings, fit_probes
@@ -207,7 +208,7 @@ def test_probes_move_between_devices_whole(planted):
     assert moved.kinds == probes.kinds and not probes.weight.is_meta
 
 
-@pytest.mark.parametrize("family", ["meandiff", "covariance"])
+@pytest.mark.parametrize("family", ["meandiff", "covariance", "partial"])
 def test_steering_families_find_the_planted_direction_and_read_in_feature_units(planted, family):
     data, y, train, test, folds, _, _ = planted
     probes = fit_probes(torch.from_numpy(data.x), y, [REGRESSION] * 3 + [LOGISTIC], train, folds,
@@ -224,6 +225,20 @@ def test_steering_families_find_the_planted_direction_and_read_in_feature_units(
     logits = readings[..., 3][torch.as_tensor(data.planted[:, 3])]
     labels = torch.as_tensor(y[test, 3], dtype=torch.bool)
     assert bool(((logits > 0) == labels).double().mean(-1).min() > 0.6)  # classes about even: 0.5 by chance
+
+
+def test_partial_direction_holds_the_other_features_where_covariance_mixes_them_in():
+    # a moves with b (as the gripper moves with the descent); the representation carries each along its own direction
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(2000, generator=gen, dtype=torch.float64)
+    b = a + 0.5 * torch.randn(2000, generator=gen, dtype=torch.float64)
+    u, w = torch.randn(2, 16, generator=gen, dtype=torch.float64)
+    z = (a[:, None] * u + b[:, None] * w + 0.1 * torch.randn(2000, 16, generator=gen, dtype=torch.float64))[None]
+    labels = torch.stack([a, b], 1)
+    cos = lambda v, t: float(v @ t / t.norm())  # noqa: E731
+    partial = partial_directions(z, labels)[0]
+    assert cos(partial[0], u) > 0.99 and cos(partial[1], w) > 0.99
+    assert cos(direction(z, a, False, "covariance")[0], u) < 0.9  # drags w (b's direction) along
 
 
 def test_covariance_direction_is_where_ridge_goes_as_its_penalty_grows(planted):

@@ -9,7 +9,9 @@ The predicted feature is the mean over the first `replan_every` actions of the c
 feature's action column: itself for an action feature, its delta for a state feature (z -> dz), and for speed the
 norm of the predicted (dx, dy, dz). Per row: `gain`, the least-squares slope of its change on the reading's change
 (per standard deviation of the reading), `r2` of that line, and for binary features `cross_share`, the
-share of predictions not yet on the asked side (delta > 0: close) that the push moves across 0 to it.
+share of predictions not yet on the asked side (delta > 0: close) that the push moves across 0 to it; and
+`leak_<column>`, the same slope for each other predicted action column (dx, dy, dz, gripper_action) the push was not
+meant to move: a gripper push that also lowers the hand shows as a negative `leak_dz`.
 
 Writes `controllability.parquet` (one row per layer or group and feature) and `points.parquet` (one per frame, target
 and row) under the run folder, and the table into the probe run folder too (replacing only the rows of the features
@@ -40,6 +42,7 @@ CONTROLLABILITY_NAME, POINTS_NAME = "controllability.parquet", "points.parquet"
 GROUPS = ("backbone", "expert")
 # the predicted action column each probe feature is read against
 OUTPUT = {**dict(zip(STATE_FEATURES, ACTION_FEATURES)), **{a: a for a in ACTION_FEATURES}, "speed": "speed"}
+LEAK_COLUMNS = ("dx", "dy", "dz", "gripper_action")  # the predicted columns a push elsewhere should leave alone
 
 
 def group_layers(table: pd.DataFrame, group: str) -> list[str]:
@@ -163,6 +166,8 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
                     "before": _predicted(plain, feature, vla.replan_every),
                     "after": _predicted(chunk, feature, vla.replan_every),
                     "u_norm": log.groupby("row")["u_norm"].mean().reindex(range(len(index))).to_numpy(),
+                    **{f"shift_{c}": _predicted(chunk, c, vla.replan_every) - _predicted(plain, c, vla.replan_every)
+                       for c in LEAK_COLUMNS},
                 }))
                 bar.update(len(index))
         return [pd.concat(points, ignore_index=True)]
@@ -236,10 +241,11 @@ def _summary(points: pd.DataFrame, layers: list[str], metrics: pd.DataFrame) -> 
     kinds = metrics.drop_duplicates("feature").set_index("feature")["kind"]
     rows = []
     for (name, feature), pts in points.groupby(["layer", "feature"], sort=False):
-        x, y = pts["target"].to_numpy(), (pts["after"] - pts["before"]).to_numpy()
-        dx, dy = x - x.mean(), y - y.mean()
-        gain = float((dx * dy).sum() / (dx * dx).sum()) if (dx * dx).sum() > 0 else np.nan
-        r2 = float((dx * dy).sum() ** 2 / ((dx * dx).sum() * (dy * dy).sum())) if (dy * dy).sum() > 0 else np.nan
+        x = pts["target"].to_numpy()
+        gain, r2 = _line(x, (pts["after"] - pts["before"]).to_numpy())
+        moved = set(LEAK_COLUMNS) & {OUTPUT[feature], *(("dx", "dy", "dz") if OUTPUT[feature] == "speed" else ())}
+        leaks = {f"leak_{c}": _line(x, pts[f"shift_{c}"].to_numpy())[0] if f"shift_{c}" in pts and c not in moved
+                 else np.nan for c in LEAK_COLUMNS}
         cross = np.nan
         if feature in BINARY:
             wrong_side = pts["before"] * pts["target"] <= 0
@@ -247,6 +253,14 @@ def _summary(points: pd.DataFrame, layers: list[str], metrics: pd.DataFrame) -> 
                 cross = float((pts["after"] * pts["target"] > 0)[wrong_side].mean())
         rows.append({"layer": name, "group": bool(pts["group"].iloc[0]), "layer_index": order[name],
                      "feature": feature, "kind": kinds[feature], "output": OUTPUT[feature], "gain": gain, "r2": r2,
-                     "cross_share": cross, "u_norm": float(pts["u_norm"].mean()), "n_frames": pts["frame"].nunique(),
-                     "n_targets": pts["target"].nunique()})
+                     "cross_share": cross, **leaks, "u_norm": float(pts["u_norm"].mean()),
+                     "n_frames": pts["frame"].nunique(), "n_targets": pts["target"].nunique()})
     return pd.DataFrame(rows)
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """The least-squares slope of y on x and its R² (NaN where either does not vary)."""
+    dx, dy = x - x.mean(), y - y.mean()
+    sxx, syy = (dx * dx).sum(), (dy * dy).sum()
+    slope = float((dx * dy).sum() / sxx) if sxx > 0 else np.nan
+    return slope, float((dx * dy).sum() ** 2 / (sxx * syy)) if sxx > 0 and syy > 0 else np.nan

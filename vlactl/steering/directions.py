@@ -4,7 +4,11 @@ weight, and a scale fitted along it, so the reading stays in the feature's units
 - `meandiff`: the difference of the class means (binary features: label 1 against 0; continuous ones: above
   against below the training median);
 - `covariance`: the covariance of the inputs with the label, X^T (y - mean y), the direction ridge tends to as its
-  penalty grows (and the leading direction of the cross-covariance of one feature).
+  penalty grows (and the leading direction of the cross-covariance of one feature);
+- `partial`: the covariance with the fit's other features regressed out: the feature's coefficient in the
+  least-squares fit of the inputs on all the fit's labels at once, the change of the representation per unit of this
+  feature with the others held. A feature that moves with the task's phase (the gripper closes as the hand stops
+  descending) otherwise drags the others with it when pushed; `features=` says what is held.
 
 Both work on the standardised inputs (or their kernel coordinates, `vlactl.steering.probes`: the directions are
 linear in the rows, so they map back exactly). Along the direction v the reading is a (v.z) + c, with a and c the least
@@ -17,7 +21,7 @@ import torch
 
 from vlactl.steering.logistic import fit_logistic
 
-FAMILIES = ("fit", "meandiff", "covariance")  # fit: every weight fitted (ridge / logistic, the default)
+FAMILIES = ("fit", "meandiff", "covariance", "partial")  # fit: every weight fitted (ridge / logistic, the default)
 SCALE_L2 = 1.0  # the one-dimensional logistic scale's penalty (scikit-learn's default): the direction is the steering
                 # choice, its scale only calibrates the logit, so train-probes' logistic_l2 does not apply
 
@@ -34,6 +38,18 @@ def direction(z: torch.Tensor, y: torch.Tensor, binary: bool, family: str) -> to
     return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
+def partial_directions(z: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """z [L, n, p] standardised rows, labels [n, F] -> unit directions [L, F, p] (float64): the rows of B in the
+    least-squares fit z ~ (labels - mean) B, solved in the labels' F dimensions (a tiny ridge keeps collinear labels,
+    speed beside dx, dy, dz, solvable)."""
+    y = (labels - labels.mean(0)).double()
+    gram = y.T @ y
+    gram += 1e-6 * gram.diagonal().mean() * torch.eye(len(gram), dtype=gram.dtype, device=gram.device)
+    cross = torch.einsum("nf,lnp->lfp", y.to(z.dtype), z).double()  # [L, F, p]
+    v = torch.linalg.solve(gram, cross)
+    return v / v.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
 def scaled_directions(
     z: torch.Tensor, labels: torch.Tensor, binary: list[bool], family: str, steps: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -42,9 +58,10 @@ def scaled_directions(
     n_layers, _, p = z.shape
     w = torch.zeros(n_layers, p, len(binary), dtype=torch.float64, device=z.device)
     b = torch.zeros(n_layers, len(binary), dtype=torch.float64, device=z.device)
+    partial = partial_directions(z, labels) if family == "partial" else None
     for i, is_binary in enumerate(binary):
         y = labels[:, i]
-        v = direction(z, y, is_binary, family)
+        v = partial[:, i] if partial is not None else direction(z, y, is_binary, family)
         proj = torch.einsum("lnp,lp->ln", z, v.to(z.dtype)).double()  # [L, n]
         if is_binary:
             scale = proj.std(1, keepdim=True).clamp_min(1e-12)
