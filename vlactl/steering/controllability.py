@@ -152,6 +152,7 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
     def work(index, bar):
         obs = frame_batch(frames, index)
         plain = predict_chunk(vla, obs)
+        unpushed = {c: _predicted(plain, c, vla.replan_every) for c in LEAK_COLUMNS}
         points = []
         for name, group, feature in units:
             for target in targets:
@@ -166,8 +167,7 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
                     "before": _predicted(plain, feature, vla.replan_every),
                     "after": _predicted(chunk, feature, vla.replan_every),
                     "u_norm": log.groupby("row")["u_norm"].mean().reindex(range(len(index))).to_numpy(),
-                    **{f"shift_{c}": _predicted(chunk, c, vla.replan_every) - _predicted(plain, c, vla.replan_every)
-                       for c in LEAK_COLUMNS},
+                    **{f"shift_{c}": _predicted(chunk, c, vla.replan_every) - unpushed[c] for c in LEAK_COLUMNS},
                 }))
                 bar.update(len(index))
         return [pd.concat(points, ignore_index=True)]

@@ -10,7 +10,7 @@ weight, and a scale fitted along it, so the reading stays in the feature's units
   feature with the others held. A feature that moves with the task's phase (the gripper closes as the hand stops
   descending) otherwise drags the others with it when pushed; `features=` says what is held.
 
-Both work on the standardised inputs (or their kernel coordinates, `vlactl.steering.probes`: the directions are
+All three work on the standardised inputs (or their kernel coordinates, `vlactl.steering.probes`: the directions are
 linear in the rows, so they map back exactly). Along the direction v the reading is a (v.z) + c, with a and c the least
 squares line (regression) or a one-dimensional logistic fit (binary).
 """
