@@ -178,6 +178,21 @@ def test_action_boxes_push_only_when_the_prediction_breaks_the_bound(probes, tmp
         assert steps["bound_lo"].iloc[0] == pytest.approx(0.0)
 
 
+def test_control_pause_bounds_the_translation_to_a_stop_where_the_barrier_binds(probes, tmp_path):
+    summary = rollout(tmp_path, "method=control", f"probes={probes}", "constraint=height=high", "pause=true",
+                      "layers=[expert.0]", "metres_per_unit=0.012", "height_margin=0", "run_name=run")
+    assert summary["method"] == "control" and summary["pause"] and summary["held"] == ["gripper_action"]
+    steps = pd.read_parquet(tmp_path / "run" / "steps.parquet").dropna(subset=["bound_lo"])
+    inside = (steps["action_before"] >= steps["bound_lo"]) & (steps["action_before"] <= steps["bound_hi"])
+    stopped = steps["paused"].astype(bool)
+    assert stopped.tolist() == (~inside).tolist()  # a stop only where the barrier binds
+    paused = steps[stopped]
+    assert len(paused) and (paused["passes"] >= 1).all()
+    # pushed along the predicted motion towards a stop: the commanded translation slower than unsteered
+    assert (paused["stop_after"] < paused["stop_before"]).all()
+    assert steps.loc[~stopped, "stop_before"].isna().all()
+
+
 # --- several constraints at once ----------------------------------------------------------------------------------
 
 BOTH = ["constraint=[speed=low,height=high]", "metres_per_unit=0.012", "speed_threshold=0.02", "height_margin=0"]

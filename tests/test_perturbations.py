@@ -174,8 +174,9 @@ def test_pause_stops_the_arm_only_where_a_pausable_constraint_binds():
 
 
 @pytest.mark.parametrize("extra, message", [
-    (["constraint=height=high", "method=prompt"], "pause=true needs method=filter, not method=prompt"),
-    (["constraint=height=high", "method=control"], "pause=true needs method=filter, not method=control"),
+    (["constraint=height=high", "method=prompt"], "pause=true needs method=filter or method=control with box=action, "
+                                                   "not method=prompt"),
+    (["constraint=height=high", "method=control", "box=state"], "not method=control with box=state"),
     (["constraint=gripper=open", "method=filter"], "no constraint in constraint=gripper=open asks for"),
     (["constraint=[height=high,speed=high]", "method=filter"], "cannot go with speed=high"),
 ])

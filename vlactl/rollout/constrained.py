@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import (GRIPPER_BOUND, Bounds, Constraint, action_bound, action_quantity,
-                                       as_constraints, box, prompted, push_weights)
+from vlactl.rollout.constraints import (GRIPPER_BOUND, KINDS, Bounds, Constraint, action_bound, action_quantity,
+                                       as_constraints, box, pausable, prompted, push_weights, stop_bound)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -34,10 +34,12 @@ STEERING = ("control", "alpha", "meandiff")
 # Per step with a steered prediction: the reading at the first forward through the first steered layer, and the
 # push over every steered layer and forward of that prediction (a hybrid steers each expert layer at every denoising
 # step): its summed norm and the share of those forwards it acted in.
-# box=action adds the bounded action quantity before and after the push, its bound at that re-plan, and the number of
-# steered re-predictions it took.
+# box=action adds the bounded action quantity before and after the push, its bound at that re-plan, the number of
+# steered re-predictions it took, and (pause) whether the re-plan was bounded to a stop, with the commanded
+# translation's mean norm before and after that push.
 READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active", "u_norm_all", "active_share",
-                   "action_before", "action_after", "bound_lo", "bound_hi", "passes")
+                   "action_before", "action_after", "bound_lo", "bound_hi", "passes", "paused", "stop_before",
+                   "stop_after")
 # Under several constraints, the columns of each constraint get its feature as a suffix (`bound_lo_height`).
 PER_CONSTRAINT = ("reading_before", "reading_after", "action_before", "action_after", "bound_lo", "bound_hi")
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
@@ -60,7 +62,7 @@ class Steering:
     passes: int = 5  # box=action: steered re-predictions at most per re-plan
     holds: tuple = ()  # control: probes (any steered layer, other features) whose readings the push leaves alone
     hold_tolerance: float = 0.0
-    pause: bool = False  # filter: stop the arm where a pausable constraint binds (`pause_action`)
+    pause: bool = False  # stop the arm where a pausable constraint binds: filter `pause_action`, control `stop_bound`
 
     @property
     def label(self) -> str:
@@ -92,9 +94,13 @@ class ConstrainedAgent(VLAAgent):
         self.constraints = as_constraints(constraint)
         self.constraint, self.steering = self.constraints[0], steering
         self.readings: dict[int, dict] = {}
-        # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature)
-        self._probes = {c.feature: steering.probes if len(self.constraints) == 1 else
-                        tuple(p for p in steering.probes if p.feature in c.action_features) for c in self.constraints}
+        # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature);
+        # with pause also the stop's, the translation read-outs (`_stop`)
+        mixed = len(self.constraints) > 1 or steering.pause
+        self._probes = {c.feature: tuple(p for p in steering.probes if p.feature in c.action_features) if mixed
+                        else steering.probes for c in self.constraints}
+        if steering.pause:
+            self._probes.setdefault("speed", tuple(p for p in steering.probes if p.feature in KINDS["speed"][3]))
         if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
             self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
 
@@ -140,9 +146,15 @@ class ConstrainedAgent(VLAAgent):
         active = named + self._gripper_kept(actions, t)
         bounds = {c.feature: action_bound(c, float(obs.state[2]), self._levels.get(c.feature, 0.0), plan.bounds,
                                           self.replan_every) for c in active}
+        # pause: where a pausable bound breaks, the translation is bounded to a stop too (speed=low's bound becomes it)
+        paused = plan.pause and any(pausable(c) and not self._inside(c, bounds, actions) for c in named)
+        if paused:
+            bounds["speed"] = stop_bound(bounds)
+            active += [] if "speed" in {c.feature for c in active} else [Constraint("speed", "low", t + 1)]
         before = {c.feature: self._quantity(c, actions) for c in active}
         self._weights = {c.feature: push_weights(c, actions) for c in active}  # from the unsteered prediction
-        row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0}
+        row = {"passes": 0, "u_norm": 0.0, "control_active": False, "u_norm_all": 0.0, "active_share": 0.0,
+               "paused": paused}
         shifts = {c.feature: 0.0 for c in active}
         log, passes, kept = None, 0, {}
         for again in (False, True):  # the second sweep: only constraints a later push broke
@@ -159,6 +171,9 @@ class ConstrainedAgent(VLAAgent):
         if log is not None:
             self.vla.set_sampling_state(drawn)
             row = {**row, **push_record(log, [c.feature for c in named] if several else None), "passes": passes}
+        if paused:  # the commanded translation's mean norm, unsteered and as pushed towards the stop
+            stop = next(c for c in active if c.feature == "speed")
+            row.update(stop_before=before["speed"], stop_after=self._quantity(stop, actions))
         for c in named:
             (lo, hi), after = bounds[c.feature], self._quantity(c, actions)
             suffix = f"_{c.feature}" if several else ""
@@ -219,6 +234,10 @@ class ConstrainedAgent(VLAAgent):
             shift = guess if min(s0, s1) + 0.1 * width < guess < max(s0, s1) - 0.1 * width else (s0 + s1) / 2
         actions, shift, log = best[1]  # a push that saturates the actions can land anywhere: the best pass seen
         return actions, shift, passes, log
+
+    def _inside(self, constraint: Constraint, bounds: dict, actions) -> bool:
+        lo, hi = bounds[constraint.feature]
+        return lo <= self._quantity(constraint, actions) <= hi
 
     def _quantity(self, constraint: Constraint, actions) -> float:
         return action_quantity(constraint, actions, self.steering.bounds.decay)

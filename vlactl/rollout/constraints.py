@@ -296,6 +296,18 @@ def pausable(constraint: Constraint) -> bool:
     return constraint.feature == "height" or constraint.name == "speed=low"
 
 
+PAUSE_NORM = 0.1  # control with pause: the commanded translation's mean norm a stop may keep (action units)
+
+
+def stop_bound(bounds: dict) -> tuple[float, float]:
+    """Control with `pause`: the bound on the commanded translation's mean norm (the speed quantity) that stands the
+    arm still where a pausable constraint binds: at most PAUSE_NORM beyond the rise (or descent) the height barrier
+    asks for (`bounds`: feature -> the [lo, hi] of `action_bound` at this re-plan). The push's counterpart of
+    `pause_action`; rotation is left to the policy (no rotation read-out is pushed)."""
+    lo, hi = bounds.get("height", (-math.inf, math.inf))
+    return 0.0, PAUSE_NORM + max(lo, -hi, 0.0)
+
+
 def pause_action(action, height_bound: tuple[float, float] | None = None):
     """The arm stopped: translation and rotation commands zero, except the dz nearest zero that the height barrier
     allows (a rise while the hand is below the level), the gripper command as given. What `pause` does instead of the

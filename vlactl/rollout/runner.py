@@ -25,8 +25,8 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering, method_label
-from vlactl.rollout.constraints import (BOXES, START_GRIPPER, Bounds, as_constraints, constraint_name, held_by_default,
-                                       parse_constraints, pausable, start_gripper)
+from vlactl.rollout.constraints import (BOXES, KINDS, START_GRIPPER, Bounds, as_constraints, constraint_name,
+                                       held_by_default, parse_constraints, pausable, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
@@ -112,7 +112,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     if run is not None:
         table = pd.read_parquet(run / METRICS_NAME)
         # each steered feature's probes at the layers chosen for it (height and speed share dz's)
-        for feature in dict.fromkeys(f for c in constraints for f in steered_features(c, cfg.box, cfg.method)):
+        steered = (f for c in constraints for f in steered_features(c, cfg.box, cfg.method, cfg.pause))
+        for feature in dict.fromkeys(steered):
             control = controllability_rows(run, feature) if cfg.layers is None else None
             layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
             probes += _load_probes(run, layers, feature, str(run))
@@ -127,12 +128,13 @@ def steering(cfg: DictConfig, constraint) -> Steering:
 
 
 def _check_pause(cfg: DictConfig, constraints: tuple) -> None:
-    """pause stops the executed arm: it needs method=filter (a push on the representation did not stop the hand:
-    docs/steering.md), a constraint a still arm satisfies (height, speed=low), and none a still arm breaks
-    (speed=high)."""
+    """pause stops the arm where a constraint binds: on the executed action (method=filter) or by a push on the
+    translation read-outs (method=control, box=action); it needs a constraint a still arm satisfies (height,
+    speed=low), and none a still arm breaks (speed=high)."""
     name = constraint_name(constraints)
-    if cfg.method != "filter":
-        raise UsageError(f"pause=true needs method=filter, not method={cfg.method}")
+    if cfg.method not in ("filter", "control") or (cfg.method == "control" and cfg.box != "action"):
+        what = f"method={cfg.method}" + (f" with box={cfg.box}" if cfg.method == "control" else "")
+        raise UsageError(f"pause=true needs method=filter or method=control with box=action, not {what}")
     if not any(pausable(c) for c in constraints):
         raise UsageError(f"pause=true stops the arm, which no constraint in constraint={name} asks for; it takes "
                          f"height=low|high or speed=low")
@@ -140,13 +142,17 @@ def _check_pause(cfg: DictConfig, constraints: tuple) -> None:
         raise UsageError(f"pause=true cannot go with speed=high (constraint={name}): a stopped arm is not fast")
 
 
-def steered_features(constraint, box: str, method: str) -> tuple[str, ...]:
+def steered_features(constraint, box: str, method: str, pause: bool = False) -> tuple[str, ...]:
     """The probe features a constraint's push moves: for control, read-outs of the action (box=action) or of the
-    state (box=state); the fixed pushes (alpha, meandiff) push along one probe: with box=action the read-out of the
+    state (box=state), with `pause` for a pausable constraint also the translation read-outs that stop the arm
+    (`stop_bound`); the fixed pushes (alpha, meandiff) push along one probe: with box=action the read-out of the
     constrained quantity."""
     if box == "state":
         return (constraint.probe_feature,)
-    return constraint.action_features if method == "control" else (constraint.quantity_feature,)
+    if method != "control":
+        return (constraint.quantity_feature,)
+    stop = KINDS["speed"][3] if pause and pausable(constraint) else ()
+    return tuple(dict.fromkeys(constraint.action_features + stop))
 
 
 def probes_run(cfg: DictConfig) -> Path:
@@ -237,10 +243,11 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
     from vlactl.steering.controller import MAX_PROBES
 
     constraints = as_constraints(constraint)
-    features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else default_holds(cfg, constraints, run)))
+    pushed = {p.feature for p in steered} | {c.quantity_feature for c in constraints}  # a hold would fight the push
+    features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else
+                                  [f for f in default_holds(cfg, constraints, run) if f not in pushed]))
     if not features:
         return ()
-    pushed = {p.feature for p in steered} | {c.quantity_feature for c in constraints}  # a hold would fight the push
     allowed = [f for f in FEATURES if f not in pushed]
     for feature in features:
         check_choice("hold feature", feature, allowed)
@@ -383,7 +390,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
             "episode_noise": bool(cfg.episode_noise), "perturbation": perturbation.name if perturbation else "none"}
     if len(constraint) > 1:  # each constraint with its window and layers; _write_tables adds its satisfaction
         head["constraints"] = {c.name: {"window": c.window, "steered_layers": [
-            p.layer for p in plan.probes if p.feature in steered_features(c, cfg.box, cfg.method)]}
+            p.layer for p in plan.probes if p.feature in steered_features(c, cfg.box, cfg.method, cfg.pause)]}
             for c in constraint}
     summary = _write_tables(where, mine, head)
     if where != out:  # the last shard to finish merges; the others say what the run still lacks
