@@ -44,6 +44,8 @@ READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active"
 PER_CONSTRAINT = ("reading_before", "reading_after", "action_before", "action_after", "bound_lo", "bound_hi")
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
 FIRST_GAIN = 0.1  # the search's first reading shift per action unit of the quantity's distance to the target
+STOP_PROBE = 0.25  # pause: the finite-difference step of the stop's per-read-out shifts, a share of the shift so far
+STOP_STEPS = 2  # pause: Newton steps of the stop's push after its finite differences
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
              # units): the minimal push puts it at the bound, not wherever a saturating push lands
 
@@ -164,6 +166,10 @@ class ConstrainedAgent(VLAAgent):
                     kept.setdefault(c.feature, lo <= quantity <= hi)
                     continue
                 actions, shifts[c.feature], used, log = self._search(obs, c, bounds, quantity, shifts, active, start)
+                if paused and c.feature == "speed" and not self._inside(c, bounds, actions):
+                    actions, shifts[c.feature], more, log = self._stop(obs, c, bounds, shifts, active, start,
+                                                                      (actions, log))
+                    used += more
                 passes += used
                 kept[c.feature] = bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
             if len(active) == 1:
@@ -234,6 +240,52 @@ class ConstrainedAgent(VLAAgent):
             shift = guess if min(s0, s1) + 0.1 * width < guess < max(s0, s1) - 0.1 * width else (s0 + s1) / 2
         actions, shift, log = best[1]  # a push that saturates the actions can land anywhere: the best pass seen
         return actions, shift, passes, log
+
+    def _stop(self, obs, stop: Constraint, bounds: dict, shifts: dict, active: list, start, found):
+        """pause: the stop's push from where the search along the predicted motion left it (`found`: its actions and
+        log). That search turns the motion's own component to zero but leaves the others: pushing the translation
+        read-outs along the motion also turns it sideways (offline, the mean command's norm goes 0.76 -> 0.42 at
+        best). So each read-out gets its own shift: their effect on the mean commanded translation of the executed
+        actions measured by finite differences, then STOP_STEPS Newton steps (Broyden updates) towards the stop (the
+        dz the height barrier asks, if any, else zero); the pass nearest the bound is taken. The shifts are kept as
+        the stop's push weights (shift 1). Returns (actions, 1.0, passes, log)."""
+        features = stop.action_features
+        along = self._weights["speed"]
+        origin = np.array([shifts["speed"] * along[f] for f in features])
+        lo, hi = bounds.get("height", (-np.inf, np.inf))
+        wanted = np.array([0.0, 0.0, float(np.clip(0.0, lo, hi))])
+        best = (self._excess(stop, bounds, found[0]), found[0], found[1], origin)
+
+        def push(vector):
+            self._weights["speed"] = dict(zip(features, map(float, vector)))
+            self.vla.set_sampling_state(start)
+            with Steerer(self.vla, self._push_boxes({**shifts, "speed": 1.0}, active), method="control") as steerer:
+                actions = self.predict(obs)
+            nonlocal best
+            best = min(best, (self._excess(stop, bounds, actions), actions, steerer.log, vector), key=lambda b: b[0])
+            return self._motion(actions)
+
+        motion, step = self._motion(found[0]), STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
+        jacobian = np.stack([(push(origin + step * e) - motion) / step for e in np.eye(3)], axis=1)
+        vector, passes = origin, 3
+        for _ in range(STOP_STEPS):
+            move = np.linalg.lstsq(jacobian, wanted - motion, rcond=None)[0]
+            reached = push(vector + move)
+            passes += 1
+            if move @ move > 0:
+                jacobian += np.outer(reached - motion - jacobian @ move, move) / (move @ move)
+            vector, motion = vector + move, reached
+        self._weights["speed"] = dict(zip(features, map(float, best[3])))
+        return best[1], 1.0, passes, best[2]
+
+    def _excess(self, constraint: Constraint, bounds: dict, actions) -> float:
+        lo, hi = bounds[constraint.feature]
+        quantity = self._quantity(constraint, actions)
+        return max(lo - quantity, quantity - hi, 0.0)
+
+    def _motion(self, actions):
+        """The mean commanded translation of the actions about to be executed."""
+        return np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, :3].mean(0)
 
     def _inside(self, constraint: Constraint, bounds: dict, actions) -> bool:
         lo, hi = bounds[constraint.feature]
