@@ -24,8 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlactl.rollout.agents import VLAAgent
-from vlactl.rollout.constraints import (GRIPPER_BOUND, KINDS, Bounds, Constraint, action_bound, action_quantity,
-                                       as_constraints, box, pausable, prompted, push_weights, stop_bound)
+from vlactl.env.features import ACTION_FEATURES
+from vlactl.rollout.constraints import (GRIPPER_BOUND, STOP_FEATURES, Bounds, Constraint, action_bound,
+                                       action_quantity, as_constraints, box, pausable, prompted, push_weights,
+                                       stop_bound)
 from vlactl.steering.steer import Constraint as ProbeBox
 from vlactl.steering.steer import Steerer
 
@@ -97,12 +99,12 @@ class ConstrainedAgent(VLAAgent):
         self.constraint, self.steering = self.constraints[0], steering
         self.readings: dict[int, dict] = {}
         # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature);
-        # with pause also the stop's, the translation read-outs (`_stop`)
+        # with pause the stop's: the translation and rotation read-outs (`_stop`)
         mixed = len(self.constraints) > 1 or steering.pause
         self._probes = {c.feature: tuple(p for p in steering.probes if p.feature in c.action_features) if mixed
                         else steering.probes for c in self.constraints}
         if steering.pause:
-            self._probes.setdefault("speed", tuple(p for p in steering.probes if p.feature in KINDS["speed"][3]))
+            self._probes["speed"] = tuple(p for p in steering.probes if p.feature in STOP_FEATURES)
         if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
             self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
 
@@ -245,47 +247,47 @@ class ConstrainedAgent(VLAAgent):
         """pause: the stop's push from where the search along the predicted motion left it (`found`: its actions and
         log). That search turns the motion's own component to zero but leaves the others: pushing the translation
         read-outs along the motion also turns it sideways (offline, the mean command's norm goes 0.76 -> 0.42 at
-        best). So each read-out gets its own shift: their effect on the mean commanded translation of the executed
-        actions measured by finite differences, then STOP_STEPS Newton steps (Broyden updates) towards the stop (the
-        dz the height barrier asks, if any, else zero); the pass nearest the bound is taken. The shifts are kept as
-        the stop's push weights (shift 1). Returns (actions, 1.0, passes, log)."""
-        features = stop.action_features
+        best), and the hand keeps turning. So each stop read-out (translation, and rotation where the probes have it)
+        gets its own shift: their effect on the mean commands of the executed actions measured by finite
+        differences, then STOP_STEPS Newton steps (Broyden updates) towards the stop (zero, but the dz the height
+        barrier asks); the pass nearest the speed bound is taken. The shifts are kept as the stop's push weights
+        (shift 1). Returns (actions, 1.0, passes, log)."""
+        features = [f for f in STOP_FEATURES if any(p.feature == f for p in self._probes["speed"])]
+        columns = [ACTION_FEATURES.index(f) for f in features]
         along = self._weights["speed"]
-        origin = np.array([shifts["speed"] * along[f] for f in features])
+        origin = np.array([shifts["speed"] * along.get(f, 0.0) for f in features])
         lo, hi = bounds.get("height", (-np.inf, np.inf))
-        wanted = np.array([0.0, 0.0, float(np.clip(0.0, lo, hi))])
+        wanted = np.where(np.array(features) == "dz", float(np.clip(0.0, lo, hi)), 0.0)
         best = (self._excess(stop, bounds, found[0]), found[0], found[1], origin)
 
+        def commands(actions):
+            return np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, columns].mean(0)
+
         def push(vector):
+            nonlocal best
             self._weights["speed"] = dict(zip(features, map(float, vector)))
             self.vla.set_sampling_state(start)
             with Steerer(self.vla, self._push_boxes({**shifts, "speed": 1.0}, active), method="control") as steerer:
                 actions = self.predict(obs)
-            nonlocal best
             best = min(best, (self._excess(stop, bounds, actions), actions, steerer.log, vector), key=lambda b: b[0])
-            return self._motion(actions)
+            return commands(actions)
 
-        motion, step = self._motion(found[0]), STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
-        jacobian = np.stack([(push(origin + step * e) - motion) / step for e in np.eye(3)], axis=1)
-        vector, passes = origin, 3
+        now, step = commands(found[0]), STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
+        jacobian = np.stack([(push(origin + step * e) - now) / step for e in np.eye(len(features))], axis=1)
+        vector = origin
         for _ in range(STOP_STEPS):
-            move = np.linalg.lstsq(jacobian, wanted - motion, rcond=None)[0]
+            move = np.linalg.lstsq(jacobian, wanted - now, rcond=None)[0]
             reached = push(vector + move)
-            passes += 1
             if move @ move > 0:
-                jacobian += np.outer(reached - motion - jacobian @ move, move) / (move @ move)
-            vector, motion = vector + move, reached
+                jacobian += np.outer(reached - now - jacobian @ move, move) / (move @ move)
+            vector, now = vector + move, reached
         self._weights["speed"] = dict(zip(features, map(float, best[3])))
-        return best[1], 1.0, passes, best[2]
+        return best[1], 1.0, len(features) + STOP_STEPS, best[2]
 
     def _excess(self, constraint: Constraint, bounds: dict, actions) -> float:
         lo, hi = bounds[constraint.feature]
         quantity = self._quantity(constraint, actions)
         return max(lo - quantity, quantity - hi, 0.0)
-
-    def _motion(self, actions):
-        """The mean commanded translation of the actions about to be executed."""
-        return np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, :3].mean(0)
 
     def _inside(self, constraint: Constraint, bounds: dict, actions) -> bool:
         lo, hi = bounds[constraint.feature]
@@ -314,7 +316,7 @@ class ConstrainedAgent(VLAAgent):
         for c in active:
             for p in self._probes[c.feature]:
                 probe, shift = total.get((p.layer, p.feature), (p, 0.0))
-                total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * self._weights[c.feature][p.feature])
+                total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * self._weights[c.feature].get(p.feature, 0.0))
         held = [b for b in self._held if (b.layer, b.probe.feature) not in total]  # a pushed probe is not held
         return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + held
 

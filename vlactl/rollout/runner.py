@@ -25,8 +25,8 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering, method_label
-from vlactl.rollout.constraints import (BOXES, KINDS, START_GRIPPER, Bounds, as_constraints, constraint_name,
-                                       held_by_default, parse_constraints, pausable, start_gripper)
+from vlactl.rollout.constraints import (BOXES, KINDS, START_GRIPPER, STOP_FEATURES, Bounds, as_constraints,
+                                       constraint_name, held_by_default, parse_constraints, pausable, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 
@@ -112,7 +112,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
     if run is not None:
         table = pd.read_parquet(run / METRICS_NAME)
         # each steered feature's probes at the layers chosen for it (height and speed share dz's)
-        steered = (f for c in constraints for f in steered_features(c, cfg.box, cfg.method, cfg.pause))
+        present = set(table["feature"])
+        steered = (f for c in constraints for f in steered_features(c, cfg.box, cfg.method, cfg.pause, present))
         for feature in dict.fromkeys(steered):
             control = controllability_rows(run, feature) if cfg.layers is None else None
             layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
@@ -142,16 +143,18 @@ def _check_pause(cfg: DictConfig, constraints: tuple) -> None:
         raise UsageError(f"pause=true cannot go with speed=high (constraint={name}): a stopped arm is not fast")
 
 
-def steered_features(constraint, box: str, method: str, pause: bool = False) -> tuple[str, ...]:
+def steered_features(constraint, box: str, method: str, pause: bool = False, present=None) -> tuple[str, ...]:
     """The probe features a constraint's push moves: for control, read-outs of the action (box=action) or of the
-    state (box=state), with `pause` for a pausable constraint also the translation read-outs that stop the arm
-    (`stop_bound`); the fixed pushes (alpha, meandiff) push along one probe: with box=action the read-out of the
-    constrained quantity."""
+    state (box=state), with `pause` for a pausable constraint also the read-outs that stop the arm (`STOP_FEATURES`:
+    the translation, and the rotation read-outs among `present`, the probe run's features, if given); the fixed
+    pushes (alpha, meandiff) push along one probe: with box=action the read-out of the constrained quantity."""
     if box == "state":
         return (constraint.probe_feature,)
     if method != "control":
         return (constraint.quantity_feature,)
-    stop = KINDS["speed"][3] if pause and pausable(constraint) else ()
+    translation = KINDS["speed"][3]
+    stop = tuple(f for f in STOP_FEATURES if f in translation or present is None or f in present) \
+        if pause and pausable(constraint) else ()
     return tuple(dict.fromkeys(constraint.action_features + stop))
 
 
