@@ -102,7 +102,7 @@ policies: install
 # `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md).
 # About 15 min a model on 2 cores.
 PROBE_DEMOS ?= data/demos/libero_spatial_robust3
-STEER_FEATURES ?= [dx,dy,dz,speed,gripper_action]
+STEER_FEATURES ?= [dx,dy,dz,dyaw,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
 STEER_FAMILIES ?= fit meandiff covariance
 CHOOSE_ARGS ?= frames=16 batch_size=16 targets=[-1,1]  # 16 frames x 2 pushes a unit: ~8 min a family on 2 busy cores

@@ -193,6 +193,18 @@ def test_control_pause_bounds_the_translation_to_a_stop_where_the_barrier_binds(
     assert steps.loc[~stopped, "stop_before"].isna().all()
 
 
+def test_the_stop_pushes_the_translation_and_the_rotation_read_outs_a_run_has():
+    from vlactl.rollout.constraints import parse_constraint
+    from vlactl.rollout.runner import steered_features
+
+    high, low = parse_constraint("height=high"), parse_constraint("speed=low")
+    assert steered_features(high, "action", "control") == ("dz",)
+    assert steered_features(high, "action", "control", True, {"dx", "dy", "dz", "dyaw"}) == ("dz", "dx", "dy", "dyaw")
+    assert steered_features(low, "action", "control", True, {"dx", "dy", "dz"}) == ("dx", "dy", "dz")
+    assert steered_features(parse_constraint("gripper=open"), "action", "control", True, {"dyaw"}) == \
+        ("gripper_action",)  # not pausable: no stop
+
+
 # --- several constraints at once ----------------------------------------------------------------------------------
 
 BOTH = ["constraint=[speed=low,height=high]", "metres_per_unit=0.012", "speed_threshold=0.02", "height_margin=0"]

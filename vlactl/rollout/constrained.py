@@ -173,7 +173,7 @@ class ConstrainedAgent(VLAAgent):
                                                                       (actions, log))
                     used += more
                 passes += used
-                kept[c.feature] = bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
+                kept[c.feature] = self._inside(c, bounds, actions)
             if len(active) == 1:
                 break
         if log is not None:
@@ -316,7 +316,8 @@ class ConstrainedAgent(VLAAgent):
         for c in active:
             for p in self._probes[c.feature]:
                 probe, shift = total.get((p.layer, p.feature), (p, 0.0))
-                total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * self._weights[c.feature].get(p.feature, 0.0))
+                weight = self._weights[c.feature].get(p.feature, 0.0)  # the stop's rotation read-outs: not speed's
+                total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * weight)
         held = [b for b in self._held if (b.layer, b.probe.feature) not in total]  # a pushed probe is not held
         return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + held
 

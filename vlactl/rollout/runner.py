@@ -247,14 +247,17 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
 
     constraints = as_constraints(constraint)
     pushed = {p.feature for p in steered} | {c.quantity_feature for c in constraints}  # a hold would fight the push
-    features = list(dict.fromkeys(cfg.hold if cfg.hold is not None else
-                                  [f for f in default_holds(cfg, constraints, run) if f not in pushed]))
+    beside = max(Counter(p.layer for p in steered).values(), default=1)  # the constraints' probes on one layer
+    if cfg.hold is None:  # the defaults: those not pushed, as many as the controller has room for (a pause's stop
+        # pushes up to six read-outs a layer)
+        features = [f for f in default_holds(cfg, constraints, run) if f not in pushed][:max(MAX_PROBES - beside, 0)]
+    else:
+        features = list(dict.fromkeys(cfg.hold))
     if not features:
         return ()
     allowed = [f for f in FEATURES if f not in pushed]
     for feature in features:
         check_choice("hold feature", feature, allowed)
-    beside = max(Counter(p.layer for p in steered).values(), default=1)  # the constraints' probes on one layer
     if len(features) + beside > MAX_PROBES:
         who = "the constraint" if beside == 1 else f"the {beside} steered probes on one layer"
         raise UsageError(f"hold={features}: at most {MAX_PROBES - beside} features can be held beside {who} "
