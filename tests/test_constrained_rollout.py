@@ -4,6 +4,7 @@ dataset, then `vlactl rollout --constraint gripper=open --method control|prompt|
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 from synthetic_demos import write_synthetic_demos
 from typer.testing import CliRunner
 
@@ -143,6 +144,24 @@ def test_mean_difference_pushes_by_alpha_along_its_direction(probes, tmp_path):
     steered = steps.dropna(subset=["u_norm"])
     assert steered["t"].tolist() == [0, 2] and np.allclose(steered["u_norm"], 5.0, rtol=1e-4)
     assert (steered["u_norm_all"] >= steered["u_norm"] - 1e-6).all() and (steered["active_share"] == 1.0).all()
+
+
+def test_mean_difference_splits_on_the_feature_it_pushes_along(probes):
+    from vlactl.rollout.constraints import parse_constraint
+    from vlactl.rollout.runner import mean_difference_directions
+    from vlactl.steering.activations import ActivationStore
+    from vlactl.steering.controller import mean_difference
+
+    acts = probes.parent / "acts"
+    store = ActivationStore(acts)
+    x = store.load(["expert.0"])[0]
+    for box, feature in (("action", "dz"), ("state", "z")):
+        cfg = rollout_config(["model=random", "method=meandiff", "constraint=height=low", f"box={box}",
+                              f"activations={acts}"])
+        values = store.labels[feature].to_numpy(dtype=float)
+        upper = values > (0.0 if feature == "dz" else np.median(values))
+        got = mean_difference_directions(cfg, parse_constraint("height=low"), ["expert.0"])["expert.0"]
+        assert np.allclose(got, mean_difference(x, torch.as_tensor(upper)).float(), atol=1e-6)
 
 
 def test_default_layer_is_the_best_one_that_can_move_the_actions(probes, tmp_path):

@@ -300,9 +300,15 @@ def _steered_layers(chosen, table: pd.DataFrame, control: pd.DataFrame | None = 
     return list(chosen)
 
 
+SIGNED = ("gripper_action", "dz")  # commands whose sign is the side (close / rise), not their median
+
+
 def mean_difference_directions(cfg: DictConfig, constraint, layers: list[str]) -> dict:
-    """Per layer, the unit difference of the activation means of frames on the 'closed / high' side of the constraint's
-    feature and those on the other side (gripper action > 0, z or speed above its median in the activations)."""
+    """Per layer, the unit difference of the activation means of frames on the 'closed / high' side of the feature the
+    push is along (`steered_features`: with box=action the commanded gripper, dz or speed; with box=state the state
+    z or speed) and those on the other side: a command above 0 for the gripper and dz, else above its median in the
+    activations. (Split on the state z, the frames where the hand is low are those after the grasp, where it rises:
+    a push towards them under height=low raised the hand.)"""
     import torch
 
     from vlactl.steering.activations import ActivationStore
@@ -311,8 +317,9 @@ def mean_difference_directions(cfg: DictConfig, constraint, layers: list[str]) -
     if cfg.activations is None:
         raise UsageError("method=meandiff needs activations=<activation folder from `vlactl collect`>")
     store = ActivationStore(resolve_path(cfg.activations))
-    values = store.labels[constraint.probe_feature].to_numpy(dtype=float)
-    upper = values > (0.0 if constraint.feature == "gripper" else np.median(values))
+    (feature,) = steered_features(constraint, cfg.box, cfg.method)
+    values = store.labels[feature].to_numpy(dtype=float)
+    upper = values > (0.0 if feature in SIGNED else np.median(values))
     return {layer: mean_difference(store.load([layer])[0], torch.as_tensor(upper)).float() for layer in layers}
 
 
