@@ -139,7 +139,7 @@ PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
 PAPER_EPISODES ?= 10
 PAPER_DEMOS ?= data/demos/libero_spatial
 PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
-PAPER_METHODS ?= none prompt control alpha meandiff filter filter+pause  # filter+pause: method=filter pause=true
+PAPER_METHODS ?= none prompt control alpha meandiff filter filter+pause  # <m>+pause: method=<m> pause=true (control+pause too)
 PAPER_ARGS ?=
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
 PAPER_PROBE_ARGS ?=  # train-probes options for every probe set, e.g. device=cuda
@@ -151,10 +151,10 @@ paper:
 	$(BIN)/vlactl plot readings model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) probes=$(PAPER_DIR)/observe
 	$(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) episodes_per_task=$(PAPER_EPISODES) output_root=$(PAPER_DIR)/rollouts $(PAPER_ARGS)
 	for c in $(PAPER_CONSTRAINTS); do for m in $(PAPER_METHODS); do \
-	  case $$c/$$m in gripper=*/filter+pause|speed=high/filter+pause) continue;; esac; \
+	  case $$c/$$m in gripper=*/*+pause|speed=high/*+pause) continue;; esac; \
 	  judge=$$([ $$m = none ] && [ $$c != gripper=closed ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$${m%+pause} \
-	    $$([ $$m = filter+pause ] && echo pause=true) probes=$(PAPER_DIR)/steer \
+	    $$(case $$m in *+pause) echo pause=true;; esac) probes=$(PAPER_DIR)/steer \
 	    activations=$(PAPER_DIR)/activations demos=$(PAPER_DEMOS) episodes_per_task=$(PAPER_EPISODES) \
 	    output_root=$(PAPER_DIR)/rollouts $$judge $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures

@@ -31,7 +31,7 @@ from vlactl.io import atomic_write_text, concat_tables
 from vlactl.plots.files import check_formats, plt, save_figure
 from vlactl.rollout.summary import success_interval
 
-METHOD_ORDER = ("none", "prompt", "control", "alpha", "meandiff", "filter", "filter+pause")
+METHOD_ORDER = ("none", "prompt", "control", "control+pause", "alpha", "meandiff", "filter", "filter+pause")
 MARKERS = "osD^vP*X"
 YLABEL = {"gripper": "gripper closure (0 open, 1 closed)", "height": "z − start height (m)",
           "speed": "speed − threshold (m/s)"}
