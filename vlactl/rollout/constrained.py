@@ -215,9 +215,8 @@ class ConstrainedAgent(VLAAgent):
             with Steerer(self.vla, boxes, method="control") as steerer:
                 actions = self.predict(obs)
             quantity, passes, last = self._quantity(constraint, actions), passes + 1, (actions, shift, steerer.log)
-            broken = sum(not bounds[c.feature][0] <= self._quantity(c, actions) <= bounds[c.feature][1]
-                         for c in others)
-            rank = (max(lo - quantity, quantity - hi, 0.0), broken, abs(quantity - target))
+            broken = sum(not self._inside(c, bounds, actions) for c in others)
+            rank = (self._excess(constraint, bounds, actions), broken, abs(quantity - target))
             if best is None or rank < best[0]:
                 best = (rank, last)
             if accept[0] <= quantity <= accept[1]:
@@ -285,13 +284,13 @@ class ConstrainedAgent(VLAAgent):
         return best[1], 1.0, len(features) + STOP_STEPS, best[2]
 
     def _excess(self, constraint: Constraint, bounds: dict, actions) -> float:
+        """How far the actions' quantity lies outside the constraint's bound (0 inside)."""
         lo, hi = bounds[constraint.feature]
         quantity = self._quantity(constraint, actions)
         return max(lo - quantity, quantity - hi, 0.0)
 
     def _inside(self, constraint: Constraint, bounds: dict, actions) -> bool:
-        lo, hi = bounds[constraint.feature]
-        return lo <= self._quantity(constraint, actions) <= hi
+        return self._excess(constraint, bounds, actions) == 0.0
 
     def _quantity(self, constraint: Constraint, actions) -> float:
         return action_quantity(constraint, actions, self.steering.bounds.decay)

@@ -130,7 +130,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
 
 def _check_pause(cfg: DictConfig, constraints: tuple) -> None:
     """pause stops the arm where a constraint binds: on the executed action (method=filter) or by a push on the
-    translation read-outs (method=control, box=action); it needs a constraint a still arm satisfies (height,
+    translation and rotation read-outs (method=control, box=action); it needs a constraint a still arm satisfies (height,
     speed=low), and none a still arm breaks (speed=high)."""
     name = constraint_name(constraints)
     if cfg.method not in ("filter", "control") or (cfg.method == "control" and cfg.box != "action"):
