@@ -47,7 +47,7 @@ PER_CONSTRAINT = ("reading_before", "reading_after", "action_before", "action_af
 MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (reading units)
 FIRST_GAIN = 0.1  # the search's first reading shift per action unit of the quantity's distance to the target
 STOP_PROBE = 0.25  # pause: the finite-difference step of the stop's per-read-out shifts, a share of the shift so far
-STOP_STEPS = 2  # pause: Newton steps of the stop's push after its finite differences
+STOP_STEPS = 3  # pause: Newton steps of the stop's push after its finite differences
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
              # units): the minimal push puts it at the bound, not wherever a saturating push lands
 
@@ -247,20 +247,26 @@ class ConstrainedAgent(VLAAgent):
         log). That search turns the motion's own component to zero but leaves the others: pushing the translation
         read-outs along the motion also turns it sideways (offline, the mean command's norm goes 0.76 -> 0.42 at
         best), and the hand keeps turning. So each stop read-out (translation, and rotation where the probes have it)
-        gets its own shift: their effect on the mean commands of the executed actions measured by finite
-        differences, then STOP_STEPS Newton steps (Broyden updates) towards the stop (zero, but the dz the height
-        barrier asks); the pass nearest the speed bound is taken. The shifts are kept as the stop's push weights
-        (shift 1). Returns (actions, 1.0, passes, log)."""
+        gets its own shift: their effect on every executed action's commands measured by finite differences, then
+        STOP_STEPS Newton steps (Broyden updates) towards the stop at each step (zero, but the dz the height barrier
+        asks) in least squares: a chunk whose commands only cancel on average still moves the hand. Of the passes,
+        the one nearest the speed bound, then nearest the stop over all read-outs (rotation included), is taken. The
+        shifts are kept as the stop's push weights (shift 1). Returns (actions, 1.0, passes, log)."""
         features = [f for f in STOP_FEATURES if any(p.feature == f for p in self._probes["speed"])]
         columns = [ACTION_FEATURES.index(f) for f in features]
         along = self._weights["speed"]
         origin = np.array([shifts["speed"] * along.get(f, 0.0) for f in features])
         lo, hi = bounds.get("height", (-np.inf, np.inf))
-        wanted = np.where(np.array(features) == "dz", float(np.clip(0.0, lo, hi)), 0.0)
-        best = (self._excess(stop, bounds, found[0]), found[0], found[1], origin)
+        steps = len(np.asarray(found[0]).reshape(-1, 7))
+        wanted = np.tile(np.where(np.array(features) == "dz", float(np.clip(0.0, lo, hi)), 0.0), steps)
 
         def commands(actions):
-            return np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, columns].mean(0)
+            return np.asarray(actions, dtype=np.float64).reshape(-1, 7)[:, columns].ravel()
+
+        def rank(actions):
+            return self._excess(stop, bounds, actions), float(np.linalg.norm(commands(actions) - wanted))
+
+        best = (rank(found[0]), found[0], found[1], origin)
 
         def push(vector):
             nonlocal best
@@ -268,7 +274,7 @@ class ConstrainedAgent(VLAAgent):
             self.vla.set_sampling_state(start)
             with Steerer(self.vla, self._push_boxes({**shifts, "speed": 1.0}, active), method="control") as steerer:
                 actions = self.predict(obs)
-            best = min(best, (self._excess(stop, bounds, actions), actions, steerer.log, vector), key=lambda b: b[0])
+            best = min(best, (rank(actions), actions, steerer.log, vector), key=lambda b: b[0])
             return commands(actions)
 
         now, step = commands(found[0]), STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
