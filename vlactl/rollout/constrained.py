@@ -48,6 +48,8 @@ MAX_SHIFT = 100.0  # the largest reading shift the secant search may ask for (re
 FIRST_GAIN = 0.1  # the search's first reading shift per action unit of the quantity's distance to the target
 STOP_PROBE = 0.25  # pause: the finite-difference step of the stop's per-read-out shifts, a share of the shift so far
 STOP_STEPS = 3  # pause: Newton steps of the stop's push after its finite differences
+SATURATED_GROWTH = 3  # pause: times a read-out's finite-difference step grows x4 while its commands stay clipped
+CLIPPED = 0.999  # an action command this near the [-1, 1] box's edge is clipped (the models clip their outputs)
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
              # units): the minimal push puts it at the bound, not wherever a saturating push lands
 
@@ -278,7 +280,20 @@ class ConstrainedAgent(VLAAgent):
             return commands(actions)
 
         now, step = commands(found[0]), STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
-        jacobian = np.stack([(push(origin + step * e) - now) / step for e in np.eye(len(features))], axis=1)
+        own, target = now.reshape(-1, len(features)), wanted[:len(features)]
+        slopes, passes = [], len(features) + STOP_STEPS
+        for i, e in enumerate(np.eye(len(features))):
+            # towards the stop, and further while the read-out's own commands sit clipped at the action box's edge
+            # (the policy turning at full command: a small push moves nothing there, and the slope would read zero)
+            size, clipped = (step if own[:, i].mean() <= target[i] else -step), np.abs(own[:, i]).min() >= CLIPPED
+            for grow in range(SATURATED_GROWTH + 1):
+                slope = (push(origin + size * e) - now) / size
+                moved = np.abs(slope.reshape(own.shape)[:, i] * size).max() > 1e-3
+                if not clipped or moved or grow == SATURATED_GROWTH:
+                    break
+                size, passes = size * 4, passes + 1
+            slopes.append(slope)
+        jacobian = np.stack(slopes, axis=1)
         vector = origin
         for _ in range(STOP_STEPS):
             move = np.linalg.lstsq(jacobian, wanted - now, rcond=None)[0]
@@ -287,7 +302,7 @@ class ConstrainedAgent(VLAAgent):
                 jacobian += np.outer(reached - now - jacobian @ move, move) / (move @ move)
             vector, now = vector + move, reached
         self._weights["speed"] = dict(zip(features, map(float, best[3])))
-        return best[1], 1.0, len(features) + STOP_STEPS, best[2]
+        return best[1], 1.0, passes, best[2]
 
     def _excess(self, constraint: Constraint, bounds: dict, actions) -> float:
         """How far the actions' quantity lies outside the constraint's bound (0 inside)."""
