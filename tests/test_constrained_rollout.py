@@ -279,8 +279,8 @@ def test_several_constraints_under_the_filter_keep_both_bounds_where_they_can(pr
     (["method=alpha"], "method=alpha takes one constraint, not 2"),
     (["method=meandiff"], "method=meandiff takes one constraint"),
     (["method=control", "box=state"], "box=state takes one constraint"),
-    (["method=control", "layers=[expert.0]", "hold=[x,y,z,roll]"], "at most 3 features can be held beside the 3 "
-                                                                   "steered probes on one layer"),
+    (["method=control", "hold=[x,y,z,roll,pitch,yaw,gripper]", "hold_tolerance=0.1"],
+     r"hold=\[.*\] with hold_tolerance=0.1: at most 6 features can be held"),
     (["method=control", "hold=[speed]"], "unknown hold feature 'speed'"),
 ])
 def test_several_constraints_where_they_cannot_go_are_usage_errors(probes, tmp_path, extra, message):

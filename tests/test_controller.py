@@ -130,6 +130,27 @@ def test_held_readings_move_at_most_their_tolerance(seed, rows, holds, extra_dim
         assert bool(((c.u @ w[1:].mT).abs() <= 1e-7 * (1 + c.u.abs().amax())).all())
 
 
+@settings(max_examples=50, deadline=None)
+@given(SEEDS, st.integers(1, 5), st.integers(7, 10), st.integers(0, 6))
+def test_one_valued_boxes_beyond_the_enumeration_are_the_min_norm_solve(seed, rows, k, extra_dims):
+    # a stop's push pins up to eight read-outs a layer: each box one value, one candidate, any number of them
+    x, w, b, _, _ = _problem(seed, rows, k + extra_dims, k, 0.0)
+    assume(torch.linalg.cond(w @ w.mT) < 1e3)
+    shift = torch.as_tensor(np.random.default_rng(seed).normal(0, 1, k))
+    c = multi_box_control(x, w, b, shift, shift, relative=[True] * k)
+    want = torch.linalg.pinv(w.double()) @ shift  # the least-norm u with W u = shift
+    torch.testing.assert_close(c.u.double(), want.expand_as(c.u).to(torch.float64), atol=1e-6, rtol=1e-6)
+    assert bool(c.feasible.all())
+
+
+def test_more_wide_boxes_than_the_enumeration_takes_are_refused():
+    w = torch.eye(8)
+    with pytest.raises(ValueError, match="at most 6 probes with a box wider than one value"):
+        multi_box_control(torch.zeros(1, 8), w, torch.zeros(8), -torch.ones(8), torch.ones(8))
+    multi_box_control(torch.zeros(1, 8), w, torch.zeros(8), torch.tensor([-1.0] * 6 + [0.5] * 2),
+                      torch.tensor([1.0] * 6 + [0.5] * 2))  # six wide, two one-valued: solved
+
+
 def test_parallel_probes_with_compatible_boxes():
     w = torch.tensor([[1.0, 0.0], [2.0, 0.0]])
     x = torch.tensor([[5.0, 1.0]])

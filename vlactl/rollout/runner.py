@@ -247,10 +247,15 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
 
     constraints = as_constraints(constraint)
     pushed = {p.feature for p in steered} | {c.quantity_feature for c in constraints}  # a hold would fight the push
-    beside = max(Counter(p.layer for p in steered).values(), default=1)  # the constraints' probes on one layer
-    if cfg.hold is None:  # the defaults: those not pushed, as many as the controller has room for (a pause's stop
-        # pushes up to six read-outs a layer)
-        features = [f for f in default_holds(cfg, constraints, run) if f not in pushed][:max(MAX_PROBES - beside, 0)]
+    if float(cfg.hold_tolerance) < 0:
+        raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
+    # the controller enumerates the active sets of the boxes wider than one value (MAX_PROBES a layer): box=action
+    # pushes each probe to one reading, a hold with no tolerance keeps one; those cost nothing
+    pinned = cfg.box == "action" and cfg.method == "control"
+    beside = 0 if pinned else max(Counter(p.layer for p in steered).values(), default=1)
+    room = MAX_PROBES - beside if float(cfg.hold_tolerance) > 0 else None
+    if cfg.hold is None:  # the defaults: those not pushed, as many as the controller has room for
+        features = [f for f in default_holds(cfg, constraints, run) if f not in pushed][:room]
     else:
         features = list(dict.fromkeys(cfg.hold))
     if not features:
@@ -258,12 +263,10 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
     allowed = [f for f in FEATURES if f not in pushed]
     for feature in features:
         check_choice("hold feature", feature, allowed)
-    if len(features) + beside > MAX_PROBES:
-        who = "the constraint" if beside == 1 else f"the {beside} steered probes on one layer"
-        raise UsageError(f"hold={features}: at most {MAX_PROBES - beside} features can be held beside {who} "
-                         f"(the controller solves at most {MAX_PROBES} boxes a layer)")
-    if float(cfg.hold_tolerance) < 0:
-        raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
+    if room is not None and len(features) > room:
+        raise UsageError(f"hold={features} with hold_tolerance={cfg.hold_tolerance}: at most {room} features can be "
+                         f"held (the controller solves at most {MAX_PROBES} boxes wider than one value a layer, "
+                         f"{beside} of them the constraint's; hold_tolerance=0 holds any number)")
     hint = "; train it with `vlactl train-probes features=[...]` on the same activations"
     layers = list(dict.fromkeys(p.layer for p in steered))
     return tuple(p for feature in features for p in _load_probes(run, layers, feature, str(run), hint))

@@ -4,8 +4,9 @@ Readings are zeta = W.x + b (for a logistic probe, the logit). For one probe the
 u = (zmax - zeta) W / ||W||^2 above the box, (zmin - zeta) W / ||W||^2 below it, 0 inside. For k probes on one layer
 the problem min ||u||^2 s.t. zmin <= W (x + u) + b <= zmax is a small QP solved exactly by enumerating active sets:
 its solution is the minimum-norm solution of W_S u = t_S for its active set S (each active probe at one of its
-bounds), so among the 3^k candidates the feasible one of least norm is the optimum. Everything after the readings
-happens in the k-dimensional space of the probes, so k <= 6 costs nothing next to the forward pass. Plain tensors in,
+bounds), so among the 3^k candidates the feasible one of least norm is the optimum; a box of one value (a hold
+without tolerance, a push to one reading) is always active, one candidate. Everything after the readings happens in
+the k-dimensional space of the probes, so up to 6 wider boxes a layer cost nothing next to the forward pass. Plain tensors in,
 plain tensors out: no model, no hooks.
 """
 
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-MAX_PROBES = 6  # 3^6 = 729 candidate active sets
+MAX_PROBES = 6  # boxes wider than one value a layer: 3^6 = 729 candidate active sets
 
 
 @dataclass
@@ -74,8 +75,10 @@ def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: floa
     xd, wd, bd, lo, hi = _float64(x, w, b, zmin, zmax)
     _check(wd, lo, hi)
     k = wd.shape[0]
-    if k > MAX_PROBES:
-        raise ValueError(f"at most {MAX_PROBES} probes can be controlled on one layer, got {k}")
+    equal = (lo == hi).tolist()  # a box of one value (a hold, a relative push) is always active at it: one candidate
+    if k - sum(equal) > MAX_PROBES:
+        raise ValueError(f"at most {MAX_PROBES} probes with a box wider than one value can be controlled on one layer, "
+                         f"got {k - sum(equal)}")
     zeta = xd @ wd.mT + bd  # [B, k]
     relative = torch.zeros(k, dtype=torch.bool) if relative is None else torch.as_tensor(relative, dtype=torch.bool)
     # the reading change r = W u must lie in [need_lo, need_hi]
@@ -84,7 +87,8 @@ def multi_box_control(x: torch.Tensor, w: torch.Tensor, b, zmin, zmax, tol: floa
     scale = 1 + zeta.abs().amax(-1)
     # every active set at once (per probe: free, at its lower bound, at its upper bound), in one batch: the
     # pseudo-inverse of the Gram matrix with the free probes' rows and columns zeroed is the active block's own
-    sides = torch.tensor(list(itertools.product((0, -1, 1), repeat=k)), dtype=torch.int64)  # [C, k]
+    options = [(-1,) if one else (0, -1, 1) for one in equal]
+    sides = torch.tensor(list(itertools.product(*options)), dtype=torch.int64)  # [C, k]
     mask = (sides != 0).to(torch.float64)
     block_inverse = torch.linalg.pinv(mask[:, :, None] * gram * mask[:, None, :])  # [C, k, k]
     target = torch.where(sides[:, None] < 0, need_lo, torch.where(sides[:, None] > 0, need_hi, 0.0))  # [C, B, k]
