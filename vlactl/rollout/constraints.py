@@ -25,10 +25,10 @@ from vlactl.errors import UsageError
 # feature -> (allowed values, default window, the step-table column judged = the probe feature box=state steers,
 #             the probe features box=action steers: read-outs of the action the policy is about to take (speed: the
 #             commanded translation, pushed along its own direction, `push_weights`),
-#             the action read-outs box=action holds by default: those the constraint should leave alone; the gripper
-#             closes once the hand has come down and turned to the bowl, so a push to close also stops both)
+#             the action read-outs box=action holds by default: those the constraint should leave alone; not dyaw
+#             for the gripper: held with the shipped probes it kept the gripper from closing, docs/steering.md)
 KINDS = {
-    "gripper": (("open", "closed"), 15, "gripper_action", ("gripper_action",), ("dx", "dy", "dz", "dyaw")),
+    "gripper": (("open", "closed"), 15, "gripper_action", ("gripper_action",), ("dx", "dy", "dz")),
     "height": (("low", "high"), 15, "z", ("dz",), ("dx", "dy", "gripper_action")),
     "speed": (("low", "high"), 25, "speed", ("dx", "dy", "dz"), ("gripper_action",)),
 }
