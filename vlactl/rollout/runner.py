@@ -86,7 +86,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         raise UsageError(f"method={cfg.method} needs a VLA; the scripted expert takes no instruction or steering")
     if cfg.hold and cfg.method != "control":
         raise UsageError(f"hold={list(cfg.hold)} needs method=control, not {cfg.method!r}")
-    bounds_actions = cfg.method == "filter" or (cfg.method == "control" and cfg.box == "action")
+    bounds_actions = cfg.method == "filter" or controls_actions(cfg)
     if bounds_actions and int(cfg.passes) < 1:
         raise UsageError(f"passes must be >= 1, got {cfg.passes}")
     if bounds_actions and not 0 < float(cfg.barrier_decay) <= 1:
@@ -251,8 +251,7 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
         raise UsageError(f"hold_tolerance must be >= 0, got {cfg.hold_tolerance}")
     # the controller enumerates the active sets of the boxes wider than one value (MAX_PROBES a layer): box=action
     # pushes each probe to one reading, a hold with no tolerance keeps one; those cost nothing
-    pinned = cfg.box == "action" and cfg.method == "control"
-    beside = 0 if pinned else max(Counter(p.layer for p in steered).values(), default=1)
+    beside = 0 if controls_actions(cfg) else max(Counter(p.layer for p in steered).values(), default=1)
     room = MAX_PROBES - beside if float(cfg.hold_tolerance) > 0 else None
     if cfg.hold is None:  # the defaults: those not pushed, as many as the controller has room for
         features = [f for f in default_holds(cfg, constraints, run) if f not in pushed][:room]
@@ -272,6 +271,11 @@ def _hold_probes(cfg: DictConfig, constraint, run: Path, steered: tuple) -> tupl
     return tuple(p for feature in features for p in _load_probes(run, layers, feature, str(run), hint))
 
 
+def controls_actions(cfg: DictConfig) -> bool:
+    """Control on the actions (box=action): each re-plan's push sets every steered probe to one reading."""
+    return cfg.method == "control" and cfg.box == "action"
+
+
 def default_holds(cfg: DictConfig, constraint, run: Path) -> list[str]:
     """hold=null: under control on the actions, the action read-outs the constraints should leave alone (for one,
     `Constraint.holds`; for several, those every one of them holds, less the features they steer:
@@ -281,7 +285,7 @@ def default_holds(cfg: DictConfig, constraint, run: Path) -> list[str]:
 
     from vlactl.steering.train_probes import METRICS_NAME
 
-    if cfg.method != "control" or cfg.box != "action":
+    if not controls_actions(cfg):
         return []
     present = set(pd.read_parquet(run / METRICS_NAME, columns=["feature"])["feature"])
     return [f for f in held_by_default(constraint) if f in present]
@@ -512,7 +516,7 @@ def resolve_defaults(cfg: DictConfig) -> None:
     """The method and holds a run is saved with (a run and its merge resolve them alike): null method is control under a
     constraint, null holds are [] unless control on the actions holds by default (`default_holds`)."""
     cfg.method = resolved_method(cfg)
-    if cfg.hold is None and not (cfg.method == "control" and cfg.box == "action"):
+    if cfg.hold is None and not controls_actions(cfg):
         cfg.hold = []
 
 

@@ -6,8 +6,8 @@ the problem min ||u||^2 s.t. zmin <= W (x + u) + b <= zmax is a small QP solved 
 its solution is the minimum-norm solution of W_S u = t_S for its active set S (each active probe at one of its
 bounds), so among the 3^k candidates the feasible one of least norm is the optimum; a box of one value (a hold
 without tolerance, a push to one reading) is always active, one candidate. Everything after the readings happens in
-the k-dimensional space of the probes, so up to 6 wider boxes a layer cost nothing next to the forward pass. Plain tensors in,
-plain tensors out: no model, no hooks.
+the k-dimensional space of the probes, so up to 6 wider boxes a layer cost nothing next to the forward pass. Plain
+tensors in, plain tensors out: no model, no hooks.
 """
 
 from __future__ import annotations
