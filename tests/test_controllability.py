@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from vlactl.cli import app
 from vlactl.config import load_policy_stage_config
+from vlactl.env.features import ACTION_FEATURES
 from vlactl.errors import UsageError
 from vlactl.models.registry import tiny_policy
 from vlactl.rollout.constraints import parse_constraint
@@ -68,9 +69,9 @@ def test_a_row_per_layer_group_and_feature_written_into_the_probe_run(probe_runs
     cross = table[table["feature"] == "gripper_action"]["cross_share"].dropna()
     assert ((cross >= 0) & (cross <= 1)).all()
     # what else each push moves: every predicted action column but the one it steers
-    leaks = table.set_index("feature")[["leak_dx", "leak_dy", "leak_dz", "leak_gripper_action"]]
+    leaks = table.set_index("feature")[[f"leak_{c}" for c in ACTION_FEATURES]]
     assert leaks.loc["z", "leak_dz"].isna().all() and leaks.loc["gripper_action", "leak_gripper_action"].isna().all()
-    assert leaks.loc["z", ["leak_dx", "leak_gripper_action"]].notna().all().all()
+    assert leaks.loc["z", ["leak_dx", "leak_droll", "leak_dpitch", "leak_gripper_action"]].notna().all().all()
     # every steerable layer reaches the actions: the push moves the prediction
     assert (table["gain"].abs() > 1e-6).all() and (table["u_norm"] > 0).all()
     pd.testing.assert_frame_equal(pd.read_parquet(probes / "controllability.parquet"), table)

@@ -10,8 +10,9 @@ feature's action column: itself for an action feature, its delta for a state fea
 norm of the predicted (dx, dy, dz). Per row: `gain`, the least-squares slope of its change on the reading's change
 (per standard deviation of the reading), `r2` of that line, and for binary features `cross_share`, the
 share of predictions not yet on the asked side (delta > 0: close) that the push moves across 0 to it; and
-`leak_<column>`, the same slope for each other predicted action column (dx, dy, dz, gripper_action) the push was not
-meant to move: a gripper push that also lowers the hand shows as a negative `leak_dz`.
+`leak_<column>`, the same slope for each other predicted action column (dx, dy, dz, droll, dpitch, dyaw,
+gripper_action) the push was not meant to move: a gripper push that also lowers the hand shows as a negative `leak_dz`,
+a translation push that also tilts the hand as a `leak_droll`.
 
 Writes `controllability.parquet` (one row per layer or group and feature) and `points.parquet` (one per frame, target
 and row) under the run folder, and the table into the probe run folder too (replacing only the rows of the features
@@ -42,7 +43,7 @@ CONTROLLABILITY_NAME, POINTS_NAME = "controllability.parquet", "points.parquet"
 GROUPS = ("backbone", "expert")
 # the predicted action column each probe feature is read against
 OUTPUT = {**dict(zip(STATE_FEATURES, ACTION_FEATURES)), **{a: a for a in ACTION_FEATURES}, "speed": "speed"}
-LEAK_COLUMNS = ("dx", "dy", "dz", "gripper_action")  # the predicted columns a push elsewhere should leave alone
+LEAK_COLUMNS = ACTION_FEATURES  # the predicted columns a push elsewhere should leave alone
 
 
 def group_layers(table: pd.DataFrame, group: str) -> list[str]:
