@@ -99,13 +99,15 @@ policies: install
 # (every 4th frame), the observability probes (observe/: every feature, the best ridge penalty) and the steering
 # probes (steer/: the action read-outs the constraints push): one candidate run per STEER_FAMILIES (fit: ridge /
 # logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale), each measured by
-# `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md).
-# About 15 min a model on 2 cores.
+# `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md);
+# and the stop probes (stop/: the read-outs `pause=true` stops the arm with, fitted with the other action features
+# regressed out, so that a stopped translation does not tilt the hand). About 20 min a model on 2 cores.
 PROBE_DEMOS ?= data/demos/libero_spatial_robust3
 STEER_FEATURES ?= [dx,dy,dz,dyaw,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
 STEER_FAMILIES ?= fit meandiff covariance
 CHOOSE_ARGS ?= frames=16 batch_size=16 targets=[-1,1]  # 16 frames x 2 pushes a unit: ~8 min a family on 2 busy cores
+STOP_PROBE_FEATURES ?= [dx,dy,dz,droll,dpitch,dyaw,speed,gripper_action]  # each fitted with the others regressed out
 comma := ,
 define fit_probes
 	$(BIN)/vlactl collect model=$(1) dataset=$(2) every=4 output_dir=$(3)/activations
@@ -115,10 +117,13 @@ define fit_probes
 	)
 	$(BIN)/vlactl controllability model=$(1) dataset=$(2) choose_into=$(3)/steer $(CHOOSE_ARGS) \
 	  probes=[$(subst $(eval) ,$(comma),$(foreach f,$(STEER_FAMILIES),$(3)/steer-$(f)))]
+	$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/stop features=$(STOP_PROBE_FEATURES) \
+	  family=partial $(STEER_PROBE_ARGS) $(4)
+	$(BIN)/vlactl controllability model=$(1) dataset=$(2) probes=$(3)/stop features=[dx,dy,dz,dyaw] $(CHOOSE_ARGS)
 endef
 define build_probes
 	$(call fit_probes,$(1),$(PROBE_DEMOS),outputs/probes-build/$(1))
-	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer; do \
+	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer stop; do \
 	  mkdir -p data/probes/$(1).new/$$f && cp -r outputs/probes-build/$(1)/$$f/probes \
 	  outputs/probes-build/$(1)/$$f/*.parquet outputs/probes-build/$(1)/$$f/*.json outputs/probes-build/$(1)/$$f/config.yaml \
 	  data/probes/$(1).new/$$f/; done && rm -rf data/probes/$(1) && mv data/probes/$(1).new data/probes/$(1)
@@ -128,7 +133,7 @@ probes: install
 	$(foreach m,$(POLICIES),$(call build_probes,$(m)))
 
 # The paper's whole protocol on one model (default: the embedded hybrid) into $(PAPER_DIR): activations and probes
-# (fit_probes: observe/ and the chosen steering probes steer/) and Fig. 1, sweep and Fig. 2, readings and Fig. 3,
+# (fit_probes: observe/, the chosen steering probes steer/ and the stop probes stop/) and Fig. 1, sweep and Fig. 2, readings and Fig. 3,
 # rollouts (unconstrained, then every constraint x method: control bounds the action the policy is about to take with
 # the steering probes, alpha and meandiff push along them, filter is the action-space oracle) and Figs. 4-8 with
 # summary.md. Every stage resumes when re-run; any stage can be re-run alone from the one before.
@@ -154,7 +159,8 @@ paper:
 	  case $$c/$$m in gripper=*/*+pause|speed=high/*+pause) continue;; esac; \
 	  judge=$$([ $$m = none ] && [ $$c != gripper=closed ] && echo judge_from=$(PAPER_DIR)/rollouts/$(PAPER_MODEL)_libero_spatial); \
 	  $(BIN)/vlactl rollout model=$(PAPER_MODEL) $(PAPER_MODEL_ARGS) constraint=$$c method=$${m%+pause} \
-	    $$(case $$m in *+pause) echo pause=true;; esac) probes=$(PAPER_DIR)/steer \
+	    $$(case $$m in control+pause) echo pause=true stop_probes=$(PAPER_DIR)/stop;; *+pause) echo pause=true;; esac) \
+	    probes=$(PAPER_DIR)/steer \
 	    activations=$(PAPER_DIR)/activations demos=$(PAPER_DEMOS) episodes_per_task=$(PAPER_EPISODES) \
 	    output_root=$(PAPER_DIR)/rollouts $$judge $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures

@@ -212,16 +212,44 @@ def test_control_pause_bounds_the_translation_to_a_stop_where_the_barrier_binds(
     assert steps.loc[~stopped, "stop_before"].isna().all()
 
 
-def test_the_stop_pushes_the_translation_and_the_rotation_read_outs_a_run_has():
+def test_the_stop_pushes_the_translation_and_the_yaw_read_outs_a_run_has():
     from vlactl.rollout.constraints import parse_constraint
     from vlactl.rollout.runner import steered_features
 
     high, low = parse_constraint("height=high"), parse_constraint("speed=low")
     assert steered_features(high, "action", "control") == ("dz",)
-    assert steered_features(high, "action", "control", True, {"dx", "dy", "dz", "dyaw"}) == ("dz", "dx", "dy", "dyaw")
+    present = {"dx", "dy", "dz", "droll", "dpitch", "dyaw"}  # the tilt's read-outs are left alone
+    assert steered_features(high, "action", "control", True, present) == ("dz", "dx", "dy", "dyaw")
     assert steered_features(low, "action", "control", True, {"dx", "dy", "dz"}) == ("dx", "dy", "dz")
     assert steered_features(parse_constraint("gripper=open"), "action", "control", True, {"dyaw"}) == \
         ("gripper_action",)  # not pausable: no stop
+
+
+def test_the_stop_takes_its_read_outs_from_the_stop_probes(probes, tmp_path):
+    """stop_probes=: the stop's read-outs (height's dz among them) from that run; speed and the holds from probes=."""
+    from vlactl.rollout.constraints import parse_constraint
+    from vlactl.rollout.runner import steering
+    from vlactl.steering.probe_file import load_probe
+    from vlactl.steering.train_probes import probe_filename
+
+    result = CliRunner().invoke(app, ["train-probes", f"activations={probes.parent / 'acts'}",
+                                      f"output_dir={tmp_path / 'stop'}", "features=[dx,dy,dz,gripper_action,speed]",
+                                      "family=partial", "cv_folds=2", "robustness_directions=2"])
+    assert result.exit_code == 0, result.output
+    cfg = rollout_config(["model=random", "method=control", "constraint=height=high", "pause=true", f"probes={probes}",
+                          f"stop_probes={tmp_path / 'stop'}", "layers=[expert.0]", "metres_per_unit=0.012"])
+    plan = steering(cfg, parse_constraint("height=high", cfg.window))
+    assert [p.feature for p in plan.probes] == ["dz", "dx", "dy"]
+    for probe in plan.probes:
+        stop = load_probe(tmp_path / "stop" / "probes" / probe_filename("expert.0", probe.feature))
+        shipped = load_probe(probes / "probes" / probe_filename("expert.0", probe.feature))
+        assert torch.equal(probe.weight, stop.weight) and not torch.equal(probe.weight, shipped.weight)
+    assert [p.feature for p in plan.holds] == ["gripper_action"]
+    held = load_probe(probes / "probes" / probe_filename("expert.0", "gripper_action"))
+    assert torch.equal(plan.holds[0].weight, held.weight)
+    with pytest.raises(UsageError, match="stop_probes=.* needs pause=true"):
+        steering(rollout_config(["model=random", "method=control", "constraint=height=high", f"probes={probes}",
+                                 f"stop_probes={tmp_path / 'stop'}"]), parse_constraint("height=high", cfg.window))
 
 
 # --- several constraints at once ----------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ import numpy as np
 
 from vlactl.rollout.agents import VLAAgent
 from vlactl.env.features import ACTION_FEATURES
-from vlactl.rollout.constraints import (GRIPPER_BOUND, STOP_FEATURES, Bounds, Constraint, action_bound,
+from vlactl.rollout.constraints import (GRIPPER_BOUND, STOP_READOUTS, Bounds, Constraint, action_bound,
                                        action_quantity, as_constraints, box, pausable, prompted, push_weights,
                                        stop_bound)
 from vlactl.steering.steer import Constraint as ProbeBox
@@ -101,12 +101,12 @@ class ConstrainedAgent(VLAAgent):
         self.constraint, self.steering = self.constraints[0], steering
         self.readings: dict[int, dict] = {}
         # each constraint's steering probes: those of its action read-out (features differ: one constraint a feature);
-        # with pause the stop's: the translation and rotation read-outs (`_stop`)
+        # with pause the stop's: the translation and yaw read-outs (`_stop`)
         mixed = len(self.constraints) > 1 or steering.pause
         self._probes = {c.feature: tuple(p for p in steering.probes if p.feature in c.action_features) if mixed
                         else steering.probes for c in self.constraints}
         if steering.pause:
-            self._probes["speed"] = tuple(p for p in steering.probes if p.feature in STOP_FEATURES)
+            self._probes["speed"] = tuple(p for p in steering.probes if p.feature in STOP_READOUTS)
         if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
             self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
 
@@ -248,13 +248,13 @@ class ConstrainedAgent(VLAAgent):
         """pause: the stop's push from where the search along the predicted motion left it (`found`: its actions and
         log). That search turns the motion's own component to zero but leaves the others: pushing the translation
         read-outs along the motion also turns it sideways (offline, the mean command's norm goes 0.76 -> 0.42 at
-        best), and the hand keeps turning. So each stop read-out (translation, and rotation where the probes have it)
+        best), and the hand keeps turning. So each stop read-out (translation, and yaw where the probes have it)
         gets its own shift: their effect on every executed action's commands measured by finite differences, then
         STOP_STEPS Newton steps (Broyden updates) towards the stop at each step (zero, but the dz the height barrier
         asks) in least squares: a chunk whose commands only cancel on average still moves the hand. Of the passes,
-        the one nearest the speed bound, then nearest the stop over all read-outs (rotation included), is taken. The
+        the one nearest the speed bound, then nearest the stop over all read-outs (yaw included), is taken. The
         shifts are kept as the stop's push weights (shift 1). Returns (actions, 1.0, passes, log)."""
-        features = [f for f in STOP_FEATURES if any(p.feature == f for p in self._probes["speed"])]
+        features = [f for f in STOP_READOUTS if any(p.feature == f for p in self._probes["speed"])]
         columns = [ACTION_FEATURES.index(f) for f in features]
         along = self._weights["speed"]
         origin = np.array([shifts["speed"] * along.get(f, 0.0) for f in features])
@@ -336,7 +336,7 @@ class ConstrainedAgent(VLAAgent):
         for c in active:
             for p in self._probes[c.feature]:
                 probe, shift = total.get((p.layer, p.feature), (p, 0.0))
-                weight = self._weights[c.feature].get(p.feature, 0.0)  # the stop's rotation read-outs: not speed's
+                weight = self._weights[c.feature].get(p.feature, 0.0)  # the stop's yaw read-out: not speed's
                 total[p.layer, p.feature] = (probe, shift + shifts[c.feature] * weight)
         held = [b for b in self._held if (b.layer, b.probe.feature) not in total]  # a pushed probe is not held
         return [ProbeBox(p, shift, shift, relative=True) for p, shift in total.values()] + held

@@ -296,7 +296,10 @@ def pausable(constraint: Constraint) -> bool:
     return constraint.feature == "height" or constraint.name == "speed=low"
 
 
-STOP_FEATURES = ("dx", "dy", "dz", "droll", "dpitch", "dyaw")  # the commands a stop zeroes (`pause_action`)
+# control with pause: the read-outs the stop pushes (those of them a probe run has). The tilt (droll, dpitch) is left to
+# the policy: pushing or holding its read-outs spoiled the stop; what keeps it is a stop fitted with the other action
+# features regressed out (shipped as data/probes/<model>/stop; docs/steering.md).
+STOP_READOUTS = ("dx", "dy", "dz", "dyaw")
 PAUSE_NORM = 0.1  # control with pause: the commanded translation's mean norm a stop may keep (action units)
 
 
@@ -304,7 +307,7 @@ def stop_bound(bounds: dict) -> tuple[float, float]:
     """Control with `pause`: the bound on the commanded translation's mean norm (the speed quantity) that stands the
     arm still where a pausable constraint binds: at most PAUSE_NORM beyond the rise (or descent) the height barrier
     asks for (`bounds`: feature -> the [lo, hi] of `action_bound` at this re-plan). The push's counterpart of
-    `pause_action`, which also stops the rotation read-outs the probe run has (ConstrainedAgent._stop)."""
+    `pause_action`, which also stops the yaw read-out where the probe run has it (ConstrainedAgent._stop)."""
     lo, hi = bounds.get("height", (-math.inf, math.inf))
     return 0.0, PAUSE_NORM + max(lo, -hi, 0.0)
 

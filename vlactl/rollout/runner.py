@@ -25,7 +25,7 @@ from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_d
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
 from vlactl.rollout.constrained import METHODS, STEERING, Steering, method_label
-from vlactl.rollout.constraints import (BOXES, KINDS, START_GRIPPER, STOP_FEATURES, Bounds, as_constraints,
+from vlactl.rollout.constraints import (BOXES, KINDS, START_GRIPPER, STOP_READOUTS, Bounds, as_constraints,
                                        constraint_name, held_by_default, parse_constraints, pausable, start_gripper)
 from vlactl.rollout.summary import format_summary, summarise_file
 from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
@@ -35,7 +35,7 @@ SAME_RUN_KEYS = ("model", "model_inference", "suite", "seed", "max_steps", "repl
                  "constraint", "window", "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb",
                  "perturb_start", "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause",
                  "episode_noise", "speed_margin")
-SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe}: `make probes` rebuilds them
+SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe,stop}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
@@ -97,9 +97,12 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         raise UsageError(f"speed_margin must be in [0, 1) (a share of the speed threshold), got {cfg.speed_margin}")
     if cfg.pause:
         _check_pause(cfg, constraints)
+    if cfg.stop_probes is not None and not (cfg.pause and controls_actions(cfg)):
+        raise UsageError(f"stop_probes={cfg.stop_probes} needs pause=true with method=control (box=action)")
     run = probes_run(cfg) if cfg.method in STEERING else None
-    if run is not None:
-        _check_probe_weights(run, str(cfg.model))
+    stop_run = stop_probes_run(cfg, run) if cfg.pause and run is not None else run
+    for source in dict.fromkeys((run, stop_run) if run is not None else ()):
+        _check_probe_weights(source, str(cfg.model))
     threshold = scale = 0.0
     features = {c.feature for c in constraints}
     if "speed" in features:
@@ -110,14 +113,16 @@ def steering(cfg: DictConfig, constraint) -> Steering:
             raise UsageError(f"metres_per_unit must be > 0, got {scale}")
     probes = holds = ()
     if run is not None:
-        table = pd.read_parquet(run / METRICS_NAME)
-        # each steered feature's probes at the layers chosen for it (height and speed share dz's)
-        present = set(table["feature"])
+        tables = {source: pd.read_parquet(source / METRICS_NAME) for source in (run, stop_run)}
+        # each steered feature's probes at the layers chosen for it (height and speed share dz's); under pause the
+        # stop's read-outs (height's dz among them) from the stop probes
+        present = set(tables[run]["feature"]) | set(tables[stop_run]["feature"])
         steered = (f for c in constraints for f in steered_features(c, cfg.box, cfg.method, cfg.pause, present))
         for feature in dict.fromkeys(steered):
-            control = controllability_rows(run, feature) if cfg.layers is None else None
-            layers = _steered_layers(cfg.layers, table[table["feature"] == feature], control)
-            probes += _load_probes(run, layers, feature, str(run))
+            source = stop_run if feature in STOP_READOUTS and feature in set(tables[stop_run]["feature"]) else run
+            control = controllability_rows(source, feature) if cfg.layers is None else None
+            layers = _steered_layers(cfg.layers, tables[source][tables[source]["feature"] == feature], control)
+            probes += _load_probes(source, layers, feature, str(source))
         holds = _hold_probes(cfg, constraints, run, probes)
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraints[0], [p.layer for p in probes]) if meandiff else None
@@ -145,15 +150,15 @@ def _check_pause(cfg: DictConfig, constraints: tuple) -> None:
 
 def steered_features(constraint, box: str, method: str, pause: bool = False, present=None) -> tuple[str, ...]:
     """The probe features a constraint's push moves: for control, read-outs of the action (box=action) or of the
-    state (box=state), with `pause` for a pausable constraint also the read-outs that stop the arm (`STOP_FEATURES`:
-    the translation, and the rotation read-outs among `present`, the probe run's features, if given); the fixed
-    pushes (alpha, meandiff) push along one probe: with box=action the read-out of the constrained quantity."""
+    state (box=state), with `pause` for a pausable constraint also the read-outs that stop the arm (`STOP_READOUTS`:
+    the translation, and yaw if it is among `present`, the probe runs' features, if given); the fixed pushes (alpha,
+    meandiff) push along one probe: with box=action the read-out of the constrained quantity."""
     if box == "state":
         return (constraint.probe_feature,)
     if method != "control":
         return (constraint.quantity_feature,)
     translation = KINDS["speed"][3]
-    stop = tuple(f for f in STOP_FEATURES if f in translation or present is None or f in present) \
+    stop = tuple(f for f in STOP_READOUTS if f in translation or present is None or f in present) \
         if pause and pausable(constraint) else ()
     return tuple(dict.fromkeys(constraint.action_features + stop))
 
@@ -177,6 +182,24 @@ def probes_run(cfg: DictConfig) -> Path:
             return run
     raise UsageError(f"method={cfg.method} needs probes=<probe run folder from `vlactl train-probes`>; none ship "
                      f"for model {cfg.model!r} (shipped: {', '.join(shipped_probe_models()) or 'none'})")
+
+
+def stop_probes_run(cfg: DictConfig, run: Path) -> Path:
+    """pause with control: the probe run the stop's read-outs (`STOP_READOUTS`) come from: `stop_probes=`, else, when
+    the steering probes are the shipped ones, the stop probes shipped beside them (`data/probes/<model>/stop`: fitted
+    with the other action features regressed out, so that stopping the translation does not tilt the hand;
+    docs/steering.md), else the steering probe run itself."""
+    import sys
+
+    from vlactl.steering.train_probes import METRICS_NAME
+
+    if cfg.stop_probes is not None:
+        return stage_output(cfg.stop_probes, METRICS_NAME, "probe run", "vlactl train-probes family=partial")
+    shipped = run.parent / "stop"
+    if run.parent.parent == SHIPPED_PROBES and (shipped / METRICS_NAME).is_file():
+        print(f"stop probes: {shipped}", file=sys.stderr)
+        return shipped
+    return run
 
 
 def _check_probe_weights(run: Path, model: str) -> None:
