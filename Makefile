@@ -165,8 +165,10 @@ paper:
 	    output_root=$(PAPER_DIR)/rollouts $$judge $(PAPER_ARGS) || exit 1; done; done
 	$(BIN)/vlactl plot rollouts root=$(PAPER_DIR)/rollouts output_dir=$(PAPER_DIR)/figures
 
+# Two pytest workers, a test file each (its module fixtures built once): 6.5 min on 2 cores against 12.8 in one process,
+# whose time goes mostly to loading the simulator and single-threaded rollouts.
 test:
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 test-slow:
 	$(BIN)/python -m pytest -q -m slow
