@@ -101,7 +101,8 @@ def steering(cfg: DictConfig, constraint) -> Steering:
         raise UsageError(f"stop_probes={cfg.stop_probes} needs pause=true with method=control (box=action)")
     run = probes_run(cfg) if cfg.method in STEERING else None
     stop_run = stop_probes_run(cfg, run) if cfg.pause and run is not None else run
-    for source in dict.fromkeys((run, stop_run) if run is not None else ()):
+    sources = tuple(dict.fromkeys((run, stop_run))) if run is not None else ()  # one run unless the stop has its own
+    for source in sources:
         _check_probe_weights(source, str(cfg.model))
     threshold = scale = 0.0
     features = {c.feature for c in constraints}
@@ -113,13 +114,14 @@ def steering(cfg: DictConfig, constraint) -> Steering:
             raise UsageError(f"metres_per_unit must be > 0, got {scale}")
     probes = holds = ()
     if run is not None:
-        tables = {source: pd.read_parquet(source / METRICS_NAME) for source in (run, stop_run)}
+        tables = {source: pd.read_parquet(source / METRICS_NAME) for source in sources}
         # each steered feature's probes at the layers chosen for it (height and speed share dz's); under pause the
         # stop's read-outs (height's dz among them) from the stop probes
-        present = set(tables[run]["feature"]) | set(tables[stop_run]["feature"])
+        stop_features = set(tables[stop_run]["feature"])
+        present = set(tables[run]["feature"]) | stop_features
         steered = (f for c in constraints for f in steered_features(c, cfg.box, cfg.method, cfg.pause, present))
         for feature in dict.fromkeys(steered):
-            source = stop_run if feature in STOP_READOUTS and feature in set(tables[stop_run]["feature"]) else run
+            source = stop_run if feature in STOP_READOUTS and feature in stop_features else run
             control = controllability_rows(source, feature) if cfg.layers is None else None
             layers = _steered_layers(cfg.layers, tables[source][tables[source]["feature"] == feature], control)
             probes += _load_probes(source, layers, feature, str(source))
