@@ -5,6 +5,7 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
+from scipy.spatial.transform import Rotation
 
 from vlactl.env.perturbations import Perturbation, parse_perturbation, random_perturbation
 from vlactl.errors import UsageError
@@ -37,6 +38,7 @@ def test_raise_drives_the_hand_up_from_where_the_stretch_began_then_hands_back()
     ("close", lambda a: np.allclose(a[:6], 0.6) and a[6] == 1.0),
     ("hold", lambda a: not a[:6].any()),
     ("shift", lambda a: a[1] == pytest.approx(14.0 * 0.05) and a[0] == a[2] == 0),
+    ("tilt", lambda a: a[3] == pytest.approx(3.0 * 0.07) and not a[[0, 1, 2, 4, 5]].any()),
 ])
 def test_each_kind_changes_what_it_says(kind, check):
     action = np.array([0.6] * 6 + [-1.0])
@@ -56,10 +58,25 @@ def test_bad_perturbations_are_one_line_usage_errors(args, message):
         parse_perturbation(*args, max_steps=220)
 
 
+def test_tilt_turns_the_hand_about_world_x_from_any_heading_and_stops_there():
+    hook = Perturbation("tilt", size=0.1).hook()
+    start = Obs([0, 0, 1.0])
+    start.state[3:6] = [np.pi, 0.0, 0.5]  # the gripper pointing down, turned 0.5 rad about z
+    first = hook(0, start, np.zeros(7))
+    assert first[3] == pytest.approx(0.3) and first[4:6] == pytest.approx([0, 0], abs=1e-9)
+    there = Obs([0, 0, 1.0])
+    turned = Rotation.from_rotvec([0.1, 0, 0]) * Rotation.from_euler("xyz", start.state[3:6])
+    there.state[3:6] = turned.as_euler("xyz")
+    assert hook(1, there, np.zeros(7))[3:6] == pytest.approx([0, 0, 0], abs=1e-9)
+
+
 def test_demonstration_perturbations_cover_every_kind_reproducibly():
     kinds = {random_perturbation(np.random.default_rng(k), k).kind for k in range(5)}
     assert kinds == {"raise", "hold", "shift", "slow", "close"}
     assert random_perturbation(np.random.default_rng(3), 3) == random_perturbation(np.random.default_rng(3), 3)
+    tilts = [random_perturbation(np.random.default_rng(k), k, ("tilt",)) for k in range(20)]
+    assert {p.kind for p in tilts} == {"tilt"} and all(0.03 <= abs(p.size) <= 0.15 for p in tilts)
+    assert min(p.size for p in tilts) < 0 < max(p.size for p in tilts)  # turned either way
 
 
 def test_height_barrier_lets_the_hand_approach_the_start_height_by_the_decay_rate():

@@ -48,7 +48,8 @@ CLOSED_START = Kind("closed_start_episodes_per_task", "cls", 200_000, "closed_st
 CLOSED_APPROACH = Kind("closed_approach_episodes_per_task", "cla", 300_000, "closed_approach")
 NOISY = Kind("noisy_episodes_per_task", "noi", 400_000, "noisy")
 PERTURBED = Kind("perturbed_episodes_per_task", "per", 500_000, "perturbed")
-KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY, PERTURBED)
+TILTED = Kind("tilted_episodes_per_task", "tlt", 600_000, "tilted")
+KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY, PERTURBED, TILTED)
 CLOSED_STEPS = (5, 20)  # closed-start episodes hold the gripper closed this many steps (drawn per episode)
 
 
@@ -201,7 +202,7 @@ def _env(suite: str, task: int, env_cfg: dict):
 
 def _generate_episode(job) -> bool:
     from vlactl.env.features import speeds
-    from vlactl.env.perturbations import random_perturbation
+    from vlactl.env.perturbations import DEMONSTRATED, random_perturbation
     from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
     suite, task, k, kind, seed, env_cfg, action_noise, staging = job
@@ -228,7 +229,10 @@ def _generate_episode(job) -> bool:
     # A perturbed demonstration hands the arm to a perturbation (raised, held, shifted, slowed, gripper closed) for a
     # stretch of steps, then back to the expert, recording the expert's own commands throughout: the way back from
     # the states a constraint or a push leaves a policy in (vlactl/env/perturbations.py).
-    perturb = random_perturbation(np.random.default_rng(seed), k).hook() if kind == PERTURBED else None
+    # A tilted one turns the hand a few degrees about world x and holds it there first: the residual turn a pushed
+    # stop leaves a policy with (docs/steering.md).
+    kinds = {PERTURBED: DEMONSTRATED, TILTED: ("tilt",)}.get(kind)
+    perturb = random_perturbation(np.random.default_rng(seed), k, kinds).hook() if kinds else None
     start = time.time()
     obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps or closed_approach else "open")
     expert.reset(env, obs)

@@ -9,9 +9,11 @@ way back. Each kind maps the policy's (or expert's) 7-D action and the current s
 - `hold`: the hand is held where the stretch began;
 - `shift`: the hand is driven `size` metres (default 0.05) sideways (world +y) and held there;
 - `slow`: the commanded motion is scaled by `size` (default 1/3);
-- `close`: the gripper is commanded closed, on nothing or whatever is there.
-Positions are servoed with a proportional law on the delta-pose action; rotations are held (zero command) while the
-arm is taken over. The gripper stays the policy's, except under `close`.
+- `close`: the gripper is commanded closed, on nothing or whatever is there;
+- `tilt`: the hand is held where the stretch began and turned `size` radians (default 0.07) about the world x axis,
+  then held so: the few degrees a representation push leaves the hand turned by (docs/steering.md).
+Positions and orientations are servoed with proportional laws on the delta-pose action; rotations are otherwise held
+(zero command) while the arm is taken over. The gripper stays the policy's, except under `close`.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from vlactl.errors import UsageError
 
@@ -29,8 +32,11 @@ KINDS = {
     "shift": (0.05, (0.0, 0.2), "metres sideways"),
     "slow": (1 / 3, (0.0, 1.0), "speed factor"),
     "close": (None, None, ""),
+    "tilt": (0.07, (0.0, 0.5), "radians about the world x axis"),
 }
+DEMONSTRATED = ("raise", "hold", "shift", "slow", "close")  # what perturbed demonstrations cycle through (tilt: its own kind)
 SERVO_GAIN = 14.0  # action units per metre of position error: ~70% of the error per step, as the scripted expert
+ROTATION_GAIN = 3.0  # action units per radian of orientation error, as the scripted expert's servo
 CLOSE = 1.0
 
 
@@ -57,15 +63,15 @@ class Perturbation:
         def perturb(t: int, obs, action: np.ndarray) -> np.ndarray:
             if not self.active(t):
                 return action
-            pos = np.asarray(obs.state[:3], dtype=np.float64)
-            if "start" not in anchor:
-                anchor["start"] = pos.copy()
-            return self.apply(action, pos, anchor["start"])
+            state = np.asarray(obs.state, dtype=np.float64)
+            anchor.setdefault("start", state.copy())
+            return self.apply(action, state, anchor["start"])
 
         return perturb
 
-    def apply(self, action: np.ndarray, pos: np.ndarray, start_pos: np.ndarray) -> np.ndarray:
-        """The executed action while the perturbation is on, given the hand's position now and when it began."""
+    def apply(self, action: np.ndarray, state: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """The executed action while the perturbation is on, given the robot state (x, y, z, roll, pitch, yaw, g) now
+        and when it began."""
         out = np.array(action, dtype=np.float64)
         size = KINDS[self.kind][0] if self.size is None else self.size
         if self.kind == "slow":
@@ -73,9 +79,13 @@ class Perturbation:
         elif self.kind == "close":
             out[6] = CLOSE
         else:
-            offset = {"raise": (0.0, 0.0, size), "shift": (0.0, size, 0.0), "hold": (0.0, 0.0, 0.0)}[self.kind]
-            out[:3] = np.clip(SERVO_GAIN * (start_pos + np.asarray(offset) - pos), -1.0, 1.0)
+            offset = {"raise": (0.0, 0.0, size), "shift": (0.0, size, 0.0)}.get(self.kind, (0.0, 0.0, 0.0))
+            out[:3] = np.clip(SERVO_GAIN * (start[:3] + np.asarray(offset) - state[:3]), -1.0, 1.0)
             out[3:6] = 0.0
+            if self.kind == "tilt":  # the orientation error in world axes, as the expert servoes it
+                turned = Rotation.from_rotvec([size, 0.0, 0.0]) * Rotation.from_euler("xyz", start[3:6])
+                error = (turned * Rotation.from_euler("xyz", state[3:6]).inv()).as_rotvec()
+                out[3:6] = np.clip(ROTATION_GAIN * error, -1.0, 1.0)
         return out
 
 
@@ -105,13 +115,14 @@ def parse_perturbation(kind: str | None, start: int = 0, steps: int = 15, size: 
     return Perturbation(kind, int(start), int(steps), size)
 
 
-def random_perturbation(rng: np.random.Generator, index: int) -> Perturbation:
-    """The perturbation of the demonstration set's `index`-th perturbed episode: the kinds in turn, so every kind is
+def random_perturbation(rng: np.random.Generator, index: int, kinds: tuple[str, ...] = DEMONSTRATED) -> Perturbation:
+    """The perturbation of a demonstration set's `index`-th perturbed episode: `kinds` in turn, so every kind is
     equally represented; start, length and size drawn around what the closed-loop constraints do to a policy (the
-    first 15-25 steps; a hand 5-10 cm off its path)."""
-    kind = list(KINDS)[index % len(KINDS)]
+    first 15-25 steps; a hand 5-10 cm off its path, or turned by up to 0.15 rad either way)."""
+    kind = kinds[index % len(kinds)]
     start = int(rng.integers(0, 30, endpoint=True))
     steps = int(rng.integers(10, 25, endpoint=True))
-    size = {"raise": rng.uniform(0.04, 0.10), "shift": rng.uniform(0.03, 0.07) * rng.choice([-1.0, 1.0]),
-            "slow": rng.uniform(0.2, 0.5)}.get(kind)
+    side = rng.choice([-1.0, 1.0])
+    size = {"raise": rng.uniform(0.04, 0.10), "shift": rng.uniform(0.03, 0.07) * side,
+            "slow": rng.uniform(0.2, 0.5), "tilt": rng.uniform(0.03, 0.15) * side}.get(kind)
     return Perturbation(kind, start, steps, None if size is None else float(size))
