@@ -24,6 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from vlactl.errors import UsageError
+from vlactl.expert.scripted import ROT_SCALE, ExpertConfig
 
 # kind -> (default size, allowed (low, high], what the size means); None: the kind takes no size
 KINDS = {
@@ -36,7 +37,7 @@ KINDS = {
 }
 DEMONSTRATED = ("raise", "hold", "shift", "slow", "close")  # what perturbed demonstrations cycle through (tilt: its own kind)
 SERVO_GAIN = 14.0  # action units per metre of position error: ~70% of the error per step, as the scripted expert
-ROTATION_GAIN = 3.0  # action units per radian of orientation error, as the scripted expert's servo
+ROTATION_GAIN = ExpertConfig.kr / ROT_SCALE  # action units per radian of orientation error: the expert's servo
 CLOSE = 1.0
 
 
