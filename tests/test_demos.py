@@ -50,14 +50,36 @@ def test_dataset_has_documented_frames(demo_run):
     assert (actions[:, 6] > 0).any() and (actions[:, 6] < 0).any()  # the gripper opens and closes
 
 
+RAISED_STEPS = 8
+
+
+def _rollout_run(folder, episodes: int, actions: np.ndarray):
+    """A finished `vlactl rollout` run's two tables, as much of them as replaying reads: task 0's `episodes`
+    episodes, each having executed `actions`."""
+    import pandas as pd
+
+    from vlactl.env.features import ACTION_FEATURES
+
+    folder.mkdir(parents=True)
+    pd.DataFrame({"suite": "libero_spatial", "task_id": 0, "episode": range(episodes), "init_state": range(episodes),
+                  "seed": range(episodes), "start_gripper": "open"}).to_parquet(folder / "episodes.parquet")
+    steps = [pd.DataFrame(actions, columns=list(ACTION_FEATURES)).assign(task_id=0, episode=k, t=range(len(actions)))
+             for k in range(episodes)]
+    pd.concat(steps).to_parquet(folder / "steps.parquet")
+    return folder
+
+
 @pytest.fixture(scope="module")
 def special_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("special") / "special"
+    raised = np.tile([0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0], (RAISED_STEPS, 1))  # what a pushed policy did: go up
+    run = _rollout_run(out.with_name("rollout"), 1, raised)
     summary = run_demos(load_config("demos", ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}",
                                               "episodes_per_task=0", "recovery_episodes_per_task=1",
                                               "closed_start_episodes_per_task=1",
                                               "closed_approach_episodes_per_task=1",
-                                              "noisy_episodes_per_task=1"]))
+                                              "noisy_episodes_per_task=1", "replayed_episodes_per_task=1",
+                                              f"replay_from={run}", "replay_first=0"]))
     return out.with_name("special.staging") / "task00", summary
 
 
@@ -109,6 +131,35 @@ def test_noisy_demonstration_executes_noise_but_records_the_expert(demo_run, spe
     ordinary = demo_run[0].parent / "spatial.staging" / "task00" / "ep0000.npz"  # the same initial state
     # the executed noise moves the hand in ways its labels do not explain (0.85 against 0.91 measured)
     assert _motion_explained_by_labels(staged / "noi0000.npz") < _motion_explained_by_labels(ordinary) - 0.03
+
+
+def test_replayed_demonstration_executes_the_run_then_records_the_expert(demo_run, special_run):
+    staged, summary = special_run
+    assert summary["replayed"]["succeeded"] == 1
+    with np.load(staged / "rpl0000.npz") as ep:
+        z, labels = ep["robot_state"][:, 2], ep["action"]
+    with np.load(demo_run[0].parent / "spatial.staging" / "task00" / "ep0000.npz") as ep:  # the same start
+        expert_z = ep["robot_state"][:, 2]
+    assert z[RAISED_STEPS] - z[0] > 0.05  # the run's actions were executed: the hand went up ...
+    assert expert_z[RAISED_STEPS] <= expert_z[0] + 0.01  # ... where the expert alone does not
+    assert labels[:RAISED_STEPS, 2].max() < 0.5  # while the labels are the expert's own commands
+
+
+def test_replays_are_refused_with_a_one_line_reason(tmp_path):
+    from vlactl.data.demos import load_replays
+    from vlactl.errors import UsageError
+
+    with pytest.raises(UsageError, match="needs replay_from"):
+        load_replays(None, "libero_spatial", [0], 10, 1)
+    with pytest.raises(UsageError, match="no episodes.parquet"):
+        load_replays(str(tmp_path), "libero_spatial", [0], 10, 1)
+    run = _rollout_run(tmp_path / "run", 12, np.zeros((3, 7)))
+    assert len(load_replays(str(run), "libero_spatial", [0], 10, 2)) == 2
+    with pytest.raises(UsageError, match="has 12 episodes of task 0; .* needs 13"):
+        load_replays(str(run), "libero_spatial", [0], 10, 3)
+    with pytest.raises(UsageError, match="not suite=libero_object"):
+        load_replays(str(run), "libero_object", [0], 10, 1)
+    assert load_replays(None, "libero_spatial", [0], 10, 0) == {}
 
 
 def test_staging_refuses_episodes_from_other_code(tmp_path):

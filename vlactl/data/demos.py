@@ -49,7 +49,8 @@ CLOSED_APPROACH = Kind("closed_approach_episodes_per_task", "cla", 300_000, "clo
 NOISY = Kind("noisy_episodes_per_task", "noi", 400_000, "noisy")
 PERTURBED = Kind("perturbed_episodes_per_task", "per", 500_000, "perturbed")
 TILTED = Kind("tilted_episodes_per_task", "tlt", 600_000, "tilted")
-KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY, PERTURBED, TILTED)
+REPLAYED = Kind("replayed_episodes_per_task", "rpl", 700_000, "replayed")  # seeds: the replayed run's own
+KINDS = (ORDINARY, RECOVERY, CLOSED_START, CLOSED_APPROACH, NOISY, PERTURBED, TILTED, REPLAYED)
 CLOSED_STEPS = (5, 20)  # closed-start episodes hold the gripper closed this many steps (drawn per episode)
 
 
@@ -109,13 +110,17 @@ def run_demos(cfg: DictConfig) -> dict:
     staging = ensure_writable_dir(out.with_name(out.name + ".staging"))
     save_config(cfg, staging)
 
-    everything = [(t, k, kind, cfg.seed + kind.seed_offset + k) for kind in KINDS for t in tasks
-                  for k in range(cfg[kind.count])]
+    replays = load_replays(cfg.replay_from, cfg.suite, tasks, cfg.replay_first, cfg[REPLAYED.count])
+    everything = [(t, k, kind, replays[t, k].seed if kind == REPLAYED else cfg.seed + kind.seed_offset + k)
+                  for kind in KINDS for t in tasks for k in range(cfg[kind.count])]
     noise = float(cfg.action_noise)
-    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging))
+    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging), replays.get((t, k)) if kind == REPLAYED else None)
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
-    # The noise scale decides the noisy episodes' content: a resumed run with another scale must not mix them.
-    code = staged_code(staging, {**env_cfg, "action_noise": noise}, adding=bool(work))
+    # The noise scale (and the replayed run) decide episodes' content: a resumed run with others must not mix them.
+    made_with = {**env_cfg, "action_noise": noise}
+    if replays:
+        made_with["replay"] = [str(resolve_path(cfg.replay_from)), int(cfg.replay_first)]
+    code = staged_code(staging, made_with, adding=bool(work))
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
@@ -143,6 +148,55 @@ def run_demos(cfg: DictConfig) -> dict:
     save_config(cfg, out)
     _print_summary(summary)
     return summary
+
+
+@dataclass(frozen=True)
+class Replay:
+    """The start and executed actions of one episode of a rollout run, to be replayed before the expert takes over."""
+
+    init_state: int
+    seed: int
+    start_gripper: str
+    actions: np.ndarray  # (steps, 7)
+
+    def hook(self, t: int, obs, executed: np.ndarray) -> np.ndarray:
+        """The run's action at step t while it lasts, then the expert's."""
+        return self.actions[t] if t < len(self.actions) else executed
+
+
+def load_replays(run: str | None, suite: str, tasks: list[int], first: int, count: int) -> dict:
+    """(task, k) -> Replay of the run's episode `first + k` of that task: a finished `vlactl rollout` run's episodes
+    (usually cut at its window, `max_steps=15`), replayed from the same initial state, seed and gripper, so that the
+    expert records its way back from exactly the states that run's policy and steering reached (DAgger-style).
+    `first` skips the episodes whose initial states an evaluation starts from (a 10 x 10 run: 0-9)."""
+    if not count:
+        return {}
+    if run is None:
+        raise UsageError("replayed_episodes_per_task needs replay_from=<a vlactl rollout run folder>")
+    check_non_negative("replay_first", first)
+    folder = resolve_path(run)
+    if not (folder / "episodes.parquet").exists():
+        raise UsageError(f"replay_from={run}: no episodes.parquet there; give a finished `vlactl rollout` run folder")
+    import pandas as pd
+
+    episodes = pd.read_parquet(folder / "episodes.parquet").set_index(["task_id", "episode"])
+    steps = pd.read_parquet(folder / "steps.parquet").groupby(["task_id", "episode"])
+    if set(episodes["suite"]) != {suite}:
+        raise UsageError(f"replay_from={run} ran suite {sorted(set(episodes['suite']))}, not suite={suite}")
+    from vlactl.env.features import ACTION_FEATURES
+
+    replays = {}
+    for t in tasks:
+        for k in range(count):
+            key = (t, first + k)
+            if key not in episodes.index:
+                have = int((episodes.index.get_level_values(0) == t).sum())
+                raise UsageError(f"replay_from={run} has {have} episodes of task {t}; replay_first={first} + "
+                                 f"replayed_episodes_per_task={count} needs {first + count}")
+            row = episodes.loc[key]
+            actions = steps.get_group(key).sort_values("t")[list(ACTION_FEATURES)].to_numpy(np.float64)
+            replays[t, k] = Replay(int(row["init_state"]), int(row["seed"]), str(row["start_gripper"]), actions)
+    return replays
 
 
 def summarise(staging: Path, suite: str, tasks: list[int], per_task: int, kind: Kind = ORDINARY) -> dict:
@@ -205,9 +259,9 @@ def _generate_episode(job) -> bool:
     from vlactl.env.perturbations import DEMONSTRATED, random_perturbation
     from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
-    suite, task, k, kind, seed, env_cfg, action_noise, staging = job
+    suite, task, k, kind, seed, env_cfg, action_noise, staging, replay = job
     env = _env(suite, task, env_cfg)
-    init_state = k % env.n_init_states
+    init_state = replay.init_state if replay else k % env.n_init_states
     # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
     # gripper: the states a policy reaches after closing too high, and the way out (open, descend, grasp again).
     recovery = kind == RECOVERY
@@ -233,8 +287,13 @@ def _generate_episode(job) -> bool:
     # stop leaves a policy with (docs/steering.md).
     kinds = {PERTURBED: DEMONSTRATED, TILTED: ("tilt",)}.get(kind)
     perturb = random_perturbation(np.random.default_rng(seed), k, kinds).hook() if kinds else None
+    # A replayed one executes what a rollout run's policy did (under a steered constraint, say) from the same start,
+    # then hands the arm to the expert: the way back from the states that policy and push really reach (DAgger).
+    if replay:
+        perturb = replay.hook
     start = time.time()
-    obs = env.reset(init_state, seed=seed, render=True, gripper="closed" if closed_steps or closed_approach else "open")
+    gripper = replay.start_gripper if replay else "closed" if closed_steps or closed_approach else "open"
+    obs = env.reset(init_state, seed=seed, render=True, gripper=gripper)
     expert.reset(env, obs)
     frames = {"image": [], "wrist_image": [], "libero_state": [], "robot_state": [], "action": []}
     positions = []
