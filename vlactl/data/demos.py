@@ -114,7 +114,8 @@ def run_demos(cfg: DictConfig) -> dict:
     everything = [(t, k, kind, replays[t, k].seed if kind == REPLAYED else cfg.seed + kind.seed_offset + k)
                   for kind in KINDS for t in tasks for k in range(cfg[kind.count])]
     noise = float(cfg.action_noise)
-    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging), replays.get((t, k)) if kind == REPLAYED else None)
+    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging),
+             replays[t, k] if kind == REPLAYED else None)
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
     # The noise scale (and the replayed run) decide episodes' content: a resumed run with others must not mix them.
     made_with = {**env_cfg, "action_noise": noise}
