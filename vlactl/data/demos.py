@@ -286,12 +286,11 @@ def _generate_episode(job) -> bool:
     # the states a constraint or a push leaves a policy in (vlactl/env/perturbations.py).
     # A tilted one turns the hand a few degrees about world x and holds it there first: the residual turn a pushed
     # stop leaves a policy with (docs/steering.md).
-    kinds = {PERTURBED: DEMONSTRATED, TILTED: ("tilt",)}.get(kind)
-    perturb = random_perturbation(np.random.default_rng(seed), k, kinds).hook() if kinds else None
     # A replayed one executes what a rollout run's policy did (under a steered constraint, say) from the same start,
     # then hands the arm to the expert: the way back from the states that policy and push really reach (DAgger).
-    if replay:
-        perturb = replay.hook
+    kinds = {PERTURBED: DEMONSTRATED, TILTED: ("tilt",)}.get(kind)
+    perturb = (replay.hook if replay
+               else random_perturbation(np.random.default_rng(seed), k, kinds).hook() if kinds else None)
     start = time.time()
     gripper = replay.start_gripper if replay else "closed" if closed_steps or closed_approach else "open"
     obs = env.reset(init_state, seed=seed, render=True, gripper=gripper)
