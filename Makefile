@@ -46,23 +46,39 @@ demo: install
 # The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones and trains a
 # second cosine cycle. The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way
 # back after the arm was raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes),
-# averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again: each fine-tune
-# alone loses tasks the checkpoint before solved, the average keeps them and most of the way back it learned
-# (docs/models.md). The last perturbed set is also what the shipped probes are fitted on.
+# averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the
+# expert's way back from the states its own steered stop leaves (DAgger) and averaged once more: each fine-tune alone
+# loses tasks the checkpoint before solved, the average keeps them and most of the way back it learned
+# (docs/models.md). The robust3 perturbed set is also what the shipped probes are fitted on.
 # Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
 STAGES_autoregressive ?= continued
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
-STAGES_hybrid ?= continued robust+soup robust3+soup
+STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
+TUNE_hybrid_dagger ?= dataset=data/demos/libero_spatial_dagger steps=4000 lr=1e-4 warmup_steps=200
+# A stage's demonstrations made from the checkpoint so far (`current`), before its fine-tune: PREPARE_<model>_<stage>.
+# DAgger on the pushed stop: probes fitted on the checkpoint so far, its control+pause height=high rollouts cut at 15
+# steps (the window and the stop it leaves), and each replayed from the same start and handed to the expert (15 a
+# task, init states 10-24; evaluations use 0-9) beside robust3's episodes. About 80 min on 2 cores.
+define PREPARE_hybrid_dagger
+	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
+	$(BIN)/vlactl rollout model=$(current)/checkpoint probes=$(current)/probes/steer stop_probes=$(current)/probes/stop \
+	  constraint=height=high method=control pause=true episodes_per_task=25 max_steps=15 workers=2 \
+	  output_root=$(current) run_name=stops-height-high
+	$(call extended_demos,data/demos/libero_spatial_dagger,episodes_per_task=10 recovery_episodes_per_task=5 \
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=15 replay_from=$(current)/stops-height-high,\
+	  data/demos/libero_spatial_robust3)
+endef
 # One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
 # fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.
 stage_name = $(firstword $(subst +, ,$(1)))
 define train_stage
+	$(PREPARE_$(1)_$(call stage_name,$(2)))
 	$(BIN)/vlactl train-policy model=$(1) init_from=$(current)/checkpoint $(TUNE_$(1)_$(call stage_name,$(2))) \
 	  output_dir=outputs/policies/$(1)-$(call stage_name,$(2))
 	$(if $(findstring +soup,$(2)),$(BIN)/vlactl average-policies output_dir=outputs/policies/$(1)-$(subst +,-,$(2)) \
@@ -77,10 +93,10 @@ define train_policy
 	  data/policies/$(1).new && rm -rf data/policies/$(1) && mv data/policies/$(1).new data/policies/$(1)
 
 endef
-# A set that extends data/demos/libero_spatial starts from hard links to its staged episodes, so the sets share their
-# ordinary episodes (as the measured ones do) and only the extra kinds are simulated.
+# A set that extends data/demos/libero_spatial (or the set named third) starts from hard links to its staged episodes,
+# so the sets share their episodes (as the measured ones do) and only the extra kinds are simulated.
 define extended_demos
-	mkdir -p $(1).staging && cp -aln data/demos/libero_spatial.staging/. $(1).staging/
+	mkdir -p $(1).staging && cp -aln $(or $(3),data/demos/libero_spatial).staging/. $(1).staging/
 	$(BIN)/vlactl demos suite=libero_spatial $(2) workers=2 output_dir=$(1)
 endef
 policies: install
