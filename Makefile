@@ -117,7 +117,8 @@ policies: install
 # logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale), each measured by
 # `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md);
 # and the stop probes (stop/: the read-outs `pause=true` stops the arm with, fitted with the other action features
-# regressed out, so that a stopped translation does not tilt the hand). About 8 min a model on 2 idle cores (20 beside other jobs).
+# regressed out, so that a stopped translation does not tilt the hand). About 8 min a model on 2 idle cores (20 beside
+# other jobs).
 PROBE_DEMOS ?= data/demos/libero_spatial_robust3
 STEER_FEATURES ?= [dx,dy,dz,dyaw,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
