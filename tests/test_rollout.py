@@ -61,6 +61,13 @@ def test_resume_refuses_other_settings(rollout):
         run_rollout(_cfg(root, "episodes_per_task=2", "episode_noise=false"), load_policy=fixture_policy.load)
 
 
+def test_first_episode_starts_the_run_further_on(tmp_path):
+    """Episodes 1.. only: their own init states and seeds, as the same episodes of a run from 0 would have."""
+    run_rollout(_cfg(tmp_path, "episodes_per_task=1", "first_episode=1"), load_policy=fixture_policy.load)
+    episodes = pd.read_parquet(tmp_path / "fixture_libero_spatial" / "episodes.parquet")
+    assert episodes[["task_id", "episode", "init_state", "seed"]].values.tolist() == [[0, 1, 1, 1]]
+
+
 def test_runs_saved_before_episode_noise_resume_only_without_it(tmp_path):
     """Their episodes all restarted the model's one noise sequence: parts of both kinds must not mix."""
     from vlactl.rollout.runner import _differing_key
@@ -93,6 +100,7 @@ def test_a_run_records_its_models_inference_options_and_resumes_only_with_them(t
         (["model=scripted", "suite=libero_nope"], "libero_nope"),
         (["model=scripted", "--episodes-per-task", "-1"], "episodes_per_task"),
         (["model=no_such_model"], "no_such_model"),
+        (["model=scripted", "first_episode=-3"], "first_episode"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, needle, tmp_path):

@@ -370,6 +370,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         load_policy = policy_loader(cfg)
     check_choice("suite", cfg.suite, SUITES)
     check_non_negative("episodes_per_task", cfg.episodes_per_task)
+    check_non_negative("first_episode", cfg.first_episode)
     check_positive("workers", cfg.workers)
     cfg.max_steps = MAX_STEPS[cfg.suite] if cfg.max_steps is None else cfg.max_steps
     check_positive("max_steps", cfg.max_steps)
@@ -409,7 +410,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     ensure_writable_dir(where)
     save_config(cfg, where)
 
-    keys = [(t, k) for t in tasks for k in range(cfg.episodes_per_task)]
+    keys = episode_keys(cfg, tasks)
     if where == out:  # the whole run takes over the episodes its shards finished
         shards.adopt(out, shards.sources(out, keys, shards.folders(out)))
         mine = keys
@@ -446,6 +447,13 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     return summary
 
 
+def episode_keys(cfg: DictConfig, tasks: list[int]) -> list[tuple[int, int]]:
+    """The run's (task, episode) pairs: episodes first_episode.. of each task, so a run can start where another's
+    initial states end (DAgger stops on init states 10-24 leave the 10 x 10 evaluations' 0-9 alone)."""
+    first = cfg.first_episode
+    return [(t, k) for t in tasks for k in range(first, first + cfg.episodes_per_task)]
+
+
 def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
     """`vlactl rollout merge <the run's overrides>`, and the last shard to finish: the run folder as the run in one
     process would have written it, from the parts its shards finished, running no episode. Unless every episode of
@@ -466,7 +474,7 @@ def merge_run(cfg: DictConfig, head: dict | None = None) -> dict:
     folders = shards.folders(out)
     for folder in [out, *folders]:
         _check_same_run(cfg, folder)
-    keys = [(t, k) for t in resolve_tasks(cfg.suite, cfg.tasks) for k in range(cfg.episodes_per_task)]
+    keys = episode_keys(cfg, resolve_tasks(cfg.suite, cfg.tasks))
     found = shards.sources(out, keys, folders)
     missing = [key for key, source in found.items() if source is None]
     if missing:
