@@ -64,11 +64,11 @@ TUNE_hybrid_dagger ?= dataset=data/demos/libero_spatial_dagger steps=4000 lr=1e-
 # A stage's demonstrations made from the checkpoint so far (`current`), before its fine-tune: PREPARE_<model>_<stage>.
 # DAgger on the pushed stop: probes fitted on the checkpoint so far, its control+pause height=high rollouts cut at 15
 # steps (the window and the stop it leaves), and each replayed from the same start and handed to the expert (15 a
-# task, init states 10-24; evaluations use 0-9) beside robust3's episodes. About 80 min on 2 cores.
+# task, init states 10-24; evaluations use 0-9) beside robust3's episodes. About 70 min on 2 cores.
 define PREPARE_hybrid_dagger
 	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
 	$(BIN)/vlactl rollout model=$(current)/checkpoint probes=$(current)/probes/steer stop_probes=$(current)/probes/stop \
-	  constraint=height=high method=control pause=true episodes_per_task=25 max_steps=15 workers=2 \
+	  constraint=height=high method=control pause=true first_episode=10 episodes_per_task=15 max_steps=15 workers=2 \
 	  output_root=$(current) run_name=stops-height-high
 	$(call extended_demos,data/demos/libero_spatial_dagger,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=15 replay_from=$(current)/stops-height-high,\
