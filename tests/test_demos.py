@@ -181,3 +181,24 @@ def test_staging_refuses_episodes_from_other_code(tmp_path):
     (staging / CODE_NAME).unlink()
     with pytest.raises(UsageError, match="unknown version"):
         staged_code(staging, env, adding=True)
+
+
+def test_replays_extend_a_set_made_without_them_but_never_mix_two_runs(tmp_path):
+    """The DAgger stage hard-links robust3's staged episodes and adds replays of a rollout run to them."""
+    from vlactl.data.demos import CODE_NAME, REPLAYED, code_fingerprint, staged_code
+    from vlactl.errors import UsageError
+
+    env = {"image_size": 128}
+    staging = tmp_path / "dagger.staging"
+    (staging / "task00").mkdir(parents=True)
+    (staging / "task00" / "ep0000.npz").write_bytes(b"")
+    (staging / CODE_NAME).write_text(json.dumps({"code": code_fingerprint(env)}))  # the base set's record
+    assert staged_code(staging, env, adding=True, replay=["runs/a", 10]) == code_fingerprint(env)
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == ["runs/a", 10]
+    (staging / "task00" / f"{REPLAYED.prefix}0000.npz").write_bytes(b"")
+    assert staged_code(staging, env, adding=True, replay=["runs/a", 10]) == code_fingerprint(env)  # resumes
+    assert staged_code(staging, env, adding=True) == code_fingerprint(env)  # other kinds only: the record stays
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == ["runs/a", 10]
+    for other in (["runs/b", 10], ["runs/a", 0]):
+        with pytest.raises(UsageError, match="replayed from runs/a"):
+            staged_code(staging, env, adding=True, replay=other)

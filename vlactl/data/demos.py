@@ -74,22 +74,31 @@ def code_fingerprint(env_cfg: dict) -> str:
     return h.hexdigest()[:16]
 
 
-def staged_code(staging: Path, env_cfg: dict, adding: bool) -> str:
+def staged_code(staging: Path, env_cfg: dict, adding: bool, replay: list | None = None) -> str:
     """The fingerprint (code_fingerprint) of the staging folder's episodes, recorded on first use. Adding episodes
     made by other code or settings is refused (a dataset of 2026-11-29 mixed expert versions this way,
-    docs/models.md)."""
+    docs/models.md). Replayed episodes also depend on the run they replay (`replay`: its folder and replay_first),
+    recorded beside it: replays of another run are refused, while the other kinds, which do not depend on it, may come
+    from a set whose staging this one extends."""
     mark = staging / CODE_NAME
     current = code_fingerprint(env_cfg)
-    staged = json.loads(mark.read_text())["code"] if mark.exists() else None
-    has_episodes = any(staging.glob("task*/*"))
-    if staged is None and not has_episodes:
-        atomic_write_json(mark, {"code": current})
-        return current
+    saved = json.loads(mark.read_text()) if mark.exists() else {}
+    staged = saved.get("code")
+    if staged is None and not any(staging.glob("task*/*")):
+        staged = current
     if adding and staged != current:
         made_by = f"code {staged}" if staged else "code of unknown version"
         raise UsageError(f"{staging} holds episodes made by {made_by}, not by this code and env settings ({current}); "
                          "new episodes would mix the two in one dataset: choose another output_dir=... or delete that "
                          "folder")
+    before = saved.get("replay")
+    if adding and replay is not None and before not in (None, replay) \
+            and any(staging.glob(f"task*/{REPLAYED.prefix}*")):
+        raise UsageError(f"{staging} holds episodes replayed from {before[0]} (replay_first={before[1]}), not from "
+                         f"{replay[0]} (replay_first={replay[1]}): choose another output_dir=... or delete that folder")
+    record = {"code": staged, **({"replay": replay or before} if replay or before else {})}
+    if staged is not None and record != saved:
+        atomic_write_json(mark, record)
     return staged or "unknown"
 
 
@@ -118,10 +127,8 @@ def run_demos(cfg: DictConfig) -> dict:
              replays[t, k] if kind == REPLAYED else None)
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
     # The noise scale (and the replayed run) decide episodes' content: a resumed run with others must not mix them.
-    made_with = {**env_cfg, "action_noise": noise}
-    if replays:
-        made_with["replay"] = [str(resolve_path(cfg.replay_from)), int(cfg.replay_first)]
-    code = staged_code(staging, made_with, adding=bool(work))
+    replay = [str(resolve_path(cfg.replay_from)), int(cfg.replay_first)] if replays else None
+    code = staged_code(staging, {**env_cfg, "action_noise": noise}, adding=bool(work), replay=replay)
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:
