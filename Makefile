@@ -138,11 +138,14 @@ define fit_probes
 	  family=partial $(STEER_PROBE_ARGS) $(4)
 	$(BIN)/vlactl controllability model=$(1) dataset=$(2) probes=$(3)/stop features=[dx,dy,dz,dyaw] $(CHOOSE_ARGS)
 endef
+# each build in a folder of its weights' own (a retrained model's activations must not resume the last build's)
+weights_id = $(shell sha256sum data/policies/$(1)/model.safetensors | cut -c1-12)
 define build_probes
-	$(call fit_probes,$(1),$(PROBE_DEMOS),outputs/probes-build/$(1))
+	$(eval build := outputs/probes-build/$(1)-$(call weights_id,$(1)))
+	$(call fit_probes,$(1),$(PROBE_DEMOS),$(build))
 	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer stop; do \
-	  mkdir -p data/probes/$(1).new/$$f && cp -r outputs/probes-build/$(1)/$$f/probes \
-	  outputs/probes-build/$(1)/$$f/*.parquet outputs/probes-build/$(1)/$$f/*.json outputs/probes-build/$(1)/$$f/config.yaml \
+	  mkdir -p data/probes/$(1).new/$$f && cp -r $(build)/$$f/probes \
+	  $(build)/$$f/*.parquet $(build)/$$f/*.json $(build)/$$f/config.yaml \
 	  data/probes/$(1).new/$$f/; done && rm -rf data/probes/$(1) && mv data/probes/$(1).new data/probes/$(1)
 
 endef
