@@ -138,8 +138,9 @@ define fit_probes
 	  family=partial $(STEER_PROBE_ARGS) $(4)
 	$(BIN)/vlactl controllability model=$(1) dataset=$(2) probes=$(3)/stop features=[dx,dy,dz,dyaw] $(CHOOSE_ARGS)
 endef
-# each build in a folder of its weights' own (a retrained model's activations must not resume the last build's)
-weights_id = $(shell sha256sum data/policies/$(1)/model.safetensors | cut -c1-12)
+# each build in a folder of its weights' own (a retrained model's activations must not resume the last build's), named
+# by the fingerprint the probes record (`weights` in their provenance: sha256 of the weights, 16 digits)
+weights_id = $(shell sha256sum data/policies/$(1)/model.safetensors | cut -c1-16)
 define build_probes
 	$(eval build := outputs/probes-build/$(1)-$(call weights_id,$(1)))
 	$(call fit_probes,$(1),$(PROBE_DEMOS),$(build))

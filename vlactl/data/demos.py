@@ -96,7 +96,9 @@ def staged_code(staging: Path, env_cfg: dict, adding: bool, replay: list | None 
             and any(staging.glob(f"task*/{REPLAYED.prefix}*")):
         raise UsageError(f"{staging} holds episodes replayed from {before[0]} (replay_first={before[1]}), not from "
                          f"{replay[0]} (replay_first={replay[1]}): choose another output_dir=... or delete that folder")
-    record = {"code": staged, **({"replay": replay or before} if replay or before else {})}
+    record = {"code": staged}
+    if (now := replay if adding and replay is not None else before) is not None:  # only new replays change it
+        record["replay"] = now
     if staged is not None and record != saved:
         atomic_write_json(mark, record)
     return staged or "unknown"
