@@ -183,6 +183,15 @@ def test_staging_refuses_episodes_from_other_code(tmp_path):
         staged_code(staging, env, adding=True)
 
 
+def test_fingerprint_hashes_what_records_episodes_not_the_bookkeeping():
+    """Editing how demos are scheduled or written must not orphan staged episodes; editing the recorder must."""
+    from vlactl.data.demos import recorder_sources
+
+    names = {path.relative_to(path.parents[1]).as_posix() for path in recorder_sources()}
+    assert {"data/recording.py", "expert/scripted.py", "env/libero_env.py", "env/perturbations.py"} <= names
+    assert not names & {"data/demos.py", "data/lerobot_format.py"}
+
+
 def test_replays_extend_a_set_made_without_them_but_never_mix_two_runs(tmp_path):
     """The DAgger stage hard-links robust3's staged episodes and adds replays of a rollout run to them."""
     from vlactl.data.demos import CODE_NAME, REPLAYED, code_fingerprint, staged_code
