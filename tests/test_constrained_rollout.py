@@ -95,6 +95,25 @@ def test_prompt_and_none_record_satisfaction_without_steering(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_prompt_the_model_reads_alike_is_judged_from_its_run(tmp_path):
+    rollout(tmp_path, "constraint=height=low", "method=prompt")
+    source = tmp_path / "random_libero_spatial_height-low_prompt"
+    rollout(tmp_path, "constraint=height=high", "method=prompt")  # "high" is as unknown as "low"
+    rollout(tmp_path, "constraint=height=high", "method=prompt", f"judge_from={source}", "run_name=judged")
+    for table in ("episodes", "steps"):
+        judged = pd.read_parquet(tmp_path / "judged" / f"{table}.parquet").drop(columns="wall_s", errors="ignore")
+        ran = pd.read_parquet(tmp_path / "random_libero_spatial_height-high_prompt" / f"{table}.parquet")
+        pd.testing.assert_frame_equal(judged, ran.drop(columns="wall_s", errors="ignore"))
+    # the tiny model reads 12 tokens, none of the prompt; one that reads them all knows "the" of "keep the gripper open"
+    cfg = rollout_config(["model=random", "tasks=[0]", "episodes_per_task=1", "max_steps=6", "workers=1", "window=4",
+                          f"output_root={tmp_path}", "constraint=gripper=open", "method=prompt",
+                          f"judge_from={source}", "run_name=j2"])
+    with pytest.raises(UsageError, match="reads otherwise than"):
+        run_rollout(cfg, load_policy=lambda name: tiny_policy("hybrid", max_text_tokens=40))
+    assert not (tmp_path / "j2").exists()
+
+
+@pytest.mark.slow
 def test_baselines_under_gripper_closed_start_with_the_gripper_closed(tmp_path):
     rollout(tmp_path, "constraint=gripper=closed", "method=none")
     out = tmp_path / "random_libero_spatial_gripper-closed_none"
@@ -113,6 +132,7 @@ def test_baselines_under_gripper_closed_start_with_the_gripper_closed(tmp_path):
     (["method=meandiff", "probes=/nonexistent"], "not a probe run folder"),
     (["start_gripper=shut"], "start_gripper"),
     (["constraint=gripper=closed", "method=none", "judge_from=/nonexistent"], "cannot stand in"),
+    (["method=filter", "judge_from=/nonexistent"], "method=none or prompt, not"),
     (["constraint=speed=low", "method=filter", "speed_margin=1.2"], r"speed_margin must be in \[0, 1\)"),
 ])
 def test_bad_input_is_a_usage_error(tmp_path, extra, message):

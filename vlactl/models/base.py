@@ -148,6 +148,11 @@ class VLA(ABC):
             after.append(self.sampling_state())
         return torch.cat(chunks), after
 
+    def reads_alike(self, a: str, b: str) -> bool:
+        """Whether instructions `a` and `b` are the same input to the policy (then a run prompted with one stands in
+        for a run prompted with the other). By default only the same words are."""
+        return a == b
+
     def eval(self) -> "VLA":
         return self
 

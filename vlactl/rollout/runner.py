@@ -35,6 +35,7 @@ SAME_RUN_KEYS = ("model", "model_inference", "suite", "seed", "max_steps", "repl
                  "constraint", "window", "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb",
                  "perturb_start", "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause",
                  "episode_noise", "speed_margin")
+JUDGED_METHODS = ("none", "prompt")  # what judge_from can stand in for
 SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe,stop}: `make probes` rebuilds them
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
@@ -403,10 +404,11 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         probe.check_fits(agent.vla.name, agent.vla.layer_width(probe.layer), "prefix")
     policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,
               "gripper_levels": None if agent.gripper_levels is None else agent.gripper_levels.tolist()}
-    del agent
     if cfg.judge_from and perturbation is not None:
         raise UsageError(f"judge_from=... judges unperturbed episodes; drop it with perturb={cfg.perturb}")
-    source = judge_source(cfg, constraint, gripper) if cfg.judge_from else None  # checked before anything is written
+    source = (judge_source(cfg, constraint, gripper, tasks, getattr(agent, "vla", None)) if cfg.judge_from
+              else None)  # checked before anything is written
+    del agent
     ensure_writable_dir(where)
     save_config(cfg, where)
 
@@ -505,32 +507,48 @@ def _write_tables(out: Path, keys: list[tuple[int, int]], head: dict) -> dict:
     return summary
 
 
-def judge_source(cfg: DictConfig, constraint, gripper: str) -> Path:
-    """The unconstrained run `judge_from` names, if it can stand in for this one (same model, suite, seeds and
-    settings; not when the episodes start with the gripper closed: the unconstrained run started open)."""
-    if not constraint or cfg.method != "none":
-        raise UsageError(f"judge_from=... judges an unconstrained run under a constraint with method=none, not "
-                         f"constraint={cfg.constraint} method={cfg.method}")
+def judge_source(cfg: DictConfig, constraint, gripper: str, tasks: list[int], vla) -> Path:
+    """The run `judge_from` names, if its episodes are this run's: method=none judges an unconstrained run, method=prompt
+    a prompting run whose prompted instructions the policy `vla` reads exactly as this run's (the embedded models read
+    every word they never saw as one unknown token: "stay low" and "move fast" are the same input). Same model,
+    suite, seeds and settings; not when the episodes start with the gripper closed (the runs judged start open)."""
+    from vlactl.env.suites import task_info
+    from vlactl.rollout.constraints import prompted
+
+    if not constraint or cfg.method not in JUDGED_METHODS:
+        raise UsageError(f"judge_from=... judges another run under a constraint with method="
+                         f"{' or '.join(JUDGED_METHODS)}, not constraint={cfg.constraint} method={cfg.method}")
     if gripper != "open":
         raise UsageError(f"judge_from=... cannot stand in for episodes that start with the gripper {gripper} (the "
-                         f"unconstrained run started open); drop judge_from, or set start_gripper=open")
+                         f"runs it judges start open); drop judge_from, or set start_gripper=open")
     source = stage_output(cfg.judge_from, "config.yaml", "rollout run", "vlactl rollout")
-    unconstrained = {**OmegaConf.to_container(cfg, resolve=True), "constraint": "none", "method": "none"}
-    clash = _differing_key(source / "config.yaml", unconstrained, [k for k in SAME_RUN_KEYS if k != "window"])
+    ran = OmegaConf.load(source / "config.yaml").get("constraint", "none") if cfg.method == "prompt" else "none"
+    as_source = {**OmegaConf.to_container(cfg, resolve=True), "constraint": ran}
+    as_source["method"] = cfg.method if cfg.method == "prompt" else "none"
+    clash = _differing_key(source / "config.yaml", as_source, [k for k in SAME_RUN_KEYS if k != "window"])
     if clash:
         key, before, now = clash
         raise UsageError(f"judge_from={cfg.judge_from!r} ran with {key}={before!r}, not {now!r}")
+    reads_alike = vla.reads_alike if vla is not None else str.__eq__  # a served policy: only the same words
+    for task in tasks if cfg.method == "prompt" else ():
+        instruction = task_info(cfg.suite, task).instruction
+        theirs, ours = prompted(instruction, parse_constraints(ran)), prompted(instruction, constraint)
+        if not reads_alike(theirs, ours):
+            raise UsageError(f"judge_from={cfg.judge_from!r} prompted {theirs!r}, which {cfg.model} reads otherwise "
+                             f"than {ours!r}; run this prompt instead")
     return source
 
 
 def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int, int]], out: Path,
               source: Path) -> None:
-    """method=none under a constraint without re-running: the policy acts as it does unconstrained, so judge the
-    episodes of the unconstrained run `source` (`judge_source`) against the constraint."""
+    """method=none or prompt without re-running: the policy acts as in the run `source` (`judge_source`), so judge its
+    episodes against this constraint."""
     import json
 
     import pandas as pd
 
+    from vlactl.rollout.constrained import reading_columns
+    from vlactl.rollout.constraints import JUDGED
     from vlactl.rollout.workers import judge_part
 
     missing = [key for key in todo if not parts.is_done(source, *key)]
@@ -539,9 +557,11 @@ def judge_run(cfg: DictConfig, constraint, plan: Steering, todo: list[tuple[int,
                          f"{missing[0][0]}, episode {missing[0][1]} first); run it with the same tasks and episodes")
     for task, k in todo:
         base = parts.stem(source, task, k)
-        row = {**json.loads(base.with_suffix(".json").read_text()), "constraint": constraint_name(constraint),
-               "method": "none", "start_gripper": "open"}  # judge_source: only runs that start open
+        row = json.loads(base.with_suffix(".json").read_text())
+        judged_there = [*reading_columns(parse_constraints(row["constraint"])), *JUDGED]  # a prompting run's
+        row.update(constraint=constraint_name(constraint), method=cfg.method, start_gripper="open")  # judge_source
         steps = pd.read_parquet(base.with_suffix(".parquet"))
+        steps = steps.drop(columns=[c for c in steps if c.startswith(tuple(judged_there))])
         parts.write(out, row, judge_part(constraint, row, steps, plan.bounds.speed_threshold, {}))
 
 

@@ -55,6 +55,10 @@ class EmbeddedPolicy(nn.Module, StackedLayers):
     def encode(self, obs: PolicyInput) -> None:
         self._encode(self.processor.observation(obs))
 
+    def reads_alike(self, a: str, b: str) -> bool:
+        tokens, mask = self.processor.tokens([a, b])  # a word the tokenizer never saw is [UNK], whatever it was
+        return torch.equal(tokens[0], tokens[1]) and torch.equal(mask[0], mask[1])
+
     def _sample(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         raise NotImplementedError
 
