@@ -523,16 +523,16 @@ def judge_source(cfg: DictConfig, constraint, gripper: str, tasks: list[int], vl
                          f"runs it judges start open); drop judge_from, or set start_gripper=open")
     source = stage_output(cfg.judge_from, "config.yaml", "rollout run", "vlactl rollout")
     ran = OmegaConf.load(source / "config.yaml").get("constraint", "none") if cfg.method == "prompt" else "none"
-    as_source = {**OmegaConf.to_container(cfg, resolve=True), "constraint": ran}
-    as_source["method"] = cfg.method if cfg.method == "prompt" else "none"
+    as_source = {**OmegaConf.to_container(cfg, resolve=True), "constraint": ran}  # the method is the source's
     clash = _differing_key(source / "config.yaml", as_source, [k for k in SAME_RUN_KEYS if k != "window"])
     if clash:
         key, before, now = clash
         raise UsageError(f"judge_from={cfg.judge_from!r} ran with {key}={before!r}, not {now!r}")
     reads_alike = vla.reads_alike if vla is not None else str.__eq__  # a served policy: only the same words
+    asked_there = parse_constraints(ran)
     for task in tasks if cfg.method == "prompt" else ():
         instruction = task_info(cfg.suite, task).instruction
-        theirs, ours = prompted(instruction, parse_constraints(ran)), prompted(instruction, constraint)
+        theirs, ours = prompted(instruction, asked_there), prompted(instruction, constraint)
         if not reads_alike(theirs, ours):
             raise UsageError(f"judge_from={cfg.judge_from!r} prompted {theirs!r}, which {cfg.model} reads otherwise "
                              f"than {ours!r}; run this prompt instead")
