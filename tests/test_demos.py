@@ -150,16 +150,33 @@ def test_replays_are_refused_with_a_one_line_reason(tmp_path):
     from vlactl.errors import UsageError
 
     with pytest.raises(UsageError, match="needs replay_from"):
-        load_replays(None, "libero_spatial", [0], 10, 1)
+        load_replays([], "libero_spatial", [0], 10, 1)
     with pytest.raises(UsageError, match="no episodes.parquet"):
-        load_replays(str(tmp_path), "libero_spatial", [0], 10, 1)
+        load_replays([str(tmp_path)], "libero_spatial", [0], 10, 1)
     run = _rollout_run(tmp_path / "run", 12, np.zeros((3, 7)))
-    assert len(load_replays(str(run), "libero_spatial", [0], 10, 2)) == 2
+    assert len(load_replays([str(run)], "libero_spatial", [0], 10, 2)) == 2
     with pytest.raises(UsageError, match="has 12 episodes of task 0; .* needs 13"):
-        load_replays(str(run), "libero_spatial", [0], 10, 3)
+        load_replays([str(run)], "libero_spatial", [0], 10, 3)
     with pytest.raises(UsageError, match="not suite=libero_object"):
-        load_replays(str(run), "libero_object", [0], 10, 1)
-    assert load_replays(None, "libero_spatial", [0], 10, 0) == {}
+        load_replays([str(run)], "libero_object", [0], 10, 1)
+    assert load_replays([], "libero_spatial", [0], 10, 0) == {}
+
+
+def test_several_runs_are_replayed_each_under_its_own_numbers(tmp_path):
+    """replay_from=[a,b]: `count` episodes from each, b's numbered from REPLAY_STRIDE, so that a staging folder's
+    replays of a keep their names whatever count b is given later."""
+    from vlactl.data.demos import REPLAY_STRIDE, load_replays, replay_runs
+
+    up, down = np.zeros((3, 7)), np.zeros((5, 7))
+    up[:, 2], down[:, 2] = 1.0, -1.0
+    a = _rollout_run(tmp_path / "a", 12, up)
+    b = _rollout_run(tmp_path / "b", 12, down)
+    assert replay_runs(None) == [] and replay_runs(str(a)) == [str(a)] and replay_runs([a, b]) == [str(a), str(b)]
+    replays = load_replays([str(a), str(b)], "libero_spatial", [0], 10, 2)
+    assert sorted(replays) == [(0, 0), (0, 1), (0, REPLAY_STRIDE), (0, REPLAY_STRIDE + 1)]
+    assert (replays[0, 1].actions[:, 2] == 1).all() and len(replays[0, 1].actions) == 3
+    assert (replays[0, REPLAY_STRIDE].actions[:, 2] == -1).all() and len(replays[0, REPLAY_STRIDE].actions) == 5
+    assert replays[0, REPLAY_STRIDE + 1].init_state == 11  # replay_first + 1 of b
 
 
 def test_staging_refuses_episodes_from_other_code(tmp_path):
@@ -202,12 +219,22 @@ def test_replays_extend_a_set_made_without_them_but_never_mix_two_runs(tmp_path)
     (staging / "task00").mkdir(parents=True)
     (staging / "task00" / "ep0000.npz").write_bytes(b"")
     (staging / CODE_NAME).write_text(json.dumps({"code": code_fingerprint(env)}))  # the base set's record
-    assert staged_code(staging, env, adding=True, replay=["runs/a", 10]) == code_fingerprint(env)
-    assert json.loads((staging / CODE_NAME).read_text())["replay"] == ["runs/a", 10]
+    a, b = ["runs/a", 10], ["runs/b", 10]
+    assert staged_code(staging, env, adding=True, replay=[a]) == code_fingerprint(env)
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == [a]
     (staging / "task00" / f"{REPLAYED.prefix}0000.npz").write_bytes(b"")
-    assert staged_code(staging, env, adding=True, replay=["runs/a", 10]) == code_fingerprint(env)  # resumes
+    assert staged_code(staging, env, adding=True, replay=[a]) == code_fingerprint(env)  # resumes
     assert staged_code(staging, env, adding=True) == code_fingerprint(env)  # other kinds only: the record stays
-    assert json.loads((staging / CODE_NAME).read_text())["replay"] == ["runs/a", 10]
-    for other in (["runs/b", 10], ["runs/a", 0]):
-        with pytest.raises(UsageError, match="replayed from runs/a"):
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == [a]
+    for other in ([b], [["runs/a", 0]], [b, a]):
+        with pytest.raises(UsageError, match=r"replayed from runs/a \(replay_first=10\), not from runs/"):
             staged_code(staging, env, adding=True, replay=other)
+    assert staged_code(staging, env, adding=True, replay=[a, b]) == code_fingerprint(env)  # a run added after a
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == [a, b]
+    assert staged_code(staging, env, adding=True, replay=[a]) == code_fingerprint(env)  # a alone: b's stay recorded
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == [a, b]
+    (staging / CODE_NAME).write_text(json.dumps({"code": code_fingerprint(env), "replay": a}))  # one run, as recorded
+    assert staged_code(staging, env, adding=True, replay=[a, b]) == code_fingerprint(env)   # before lists
+    with pytest.raises(UsageError, match="not from runs/b"):
+        (staging / CODE_NAME).write_text(json.dumps({"code": code_fingerprint(env), "replay": a}))
+        staged_code(staging, env, adding=True, replay=[b])

@@ -29,6 +29,7 @@ from vlactl.io import atomic_write_json, ensure_writable_dir
 
 SUMMARY_NAME = "vlactl_demos.json"
 CODE_NAME = "code.json"  # in the staging folder: the code fingerprint its episodes were made with
+REPLAY_STRIDE = 1000  # the r-th replayed run's episodes are numbered from r * REPLAY_STRIDE
 
 
 def _done(staging: Path, task: int, k: int, kind: Kind) -> bool:
@@ -55,9 +56,9 @@ def code_fingerprint(env_cfg: dict) -> str:
 def staged_code(staging: Path, env_cfg: dict, adding: bool, replay: list | None = None) -> str:
     """The fingerprint (code_fingerprint) of the staging folder's episodes, recorded on first use. Adding episodes
     made by other code or settings is refused (a dataset of 2026-11-29 mixed expert versions this way,
-    docs/models.md). Replayed episodes also depend on the run they replay (`replay`: its folder and replay_first),
-    recorded beside it: replays of another run are refused, while the other kinds, which do not depend on it, may come
-    from a set whose staging this one extends."""
+    docs/models.md). Replayed episodes also depend on the runs they replay (`replay`: [folder, replay_first] per run,
+    in order), recorded beside it: replays of other runs are refused, more runs after the recorded ones are not, and
+    the other kinds, which do not depend on them, may come from a set whose staging this one extends."""
     mark = staging / CODE_NAME
     current = code_fingerprint(env_cfg)
     saved = json.loads(mark.read_text()) if mark.exists() else {}
@@ -70,16 +71,22 @@ def staged_code(staging: Path, env_cfg: dict, adding: bool, replay: list | None 
                          "new episodes would mix the two in one dataset: choose another output_dir=... or delete that "
                          "folder")
     before = saved.get("replay")
-    if adding and replay is not None and before not in (None, replay) \
+    if before and isinstance(before[0], str):  # recorded before several runs could be replayed: one [folder, first]
+        before = [before]
+    if adding and replay and before and replay[:len(before)] != before[:len(replay)] \
             and any(staging.glob(f"task*/{REPLAYED.prefix}*")):
-        raise UsageError(f"{staging} holds episodes replayed from {before[0]} (replay_first={before[1]}), not from "
-                         f"{replay[0]} (replay_first={replay[1]}): choose another output_dir=... or delete that folder")
+        raise UsageError(f"{staging} holds episodes replayed from {_runs(before)}, not from {_runs(replay)}: choose "
+                         "another output_dir=... or delete that folder")
     record = {"code": staged}
-    if (now := replay if adding and replay is not None else before) is not None:  # only new replays change it
+    if (now := max(before or [], replay if adding and replay else [], key=len)):  # only new replays extend it
         record["replay"] = now
     if staged is not None and record != saved:
         atomic_write_json(mark, record)
     return staged or "unknown"
+
+
+def _runs(replay: list) -> str:
+    return ", ".join(f"{folder} (replay_first={first})" for folder, first in replay)
 
 
 def run_demos(cfg: DictConfig) -> dict:
@@ -99,15 +106,18 @@ def run_demos(cfg: DictConfig) -> dict:
     staging = ensure_writable_dir(out.with_name(out.name + ".staging"))
     save_config(cfg, staging)
 
-    replays = load_replays(cfg.replay_from, cfg.suite, tasks, cfg.replay_first, cfg[REPLAYED.count])
+    runs = replay_runs(cfg.replay_from)
+    replays = load_replays(runs, cfg.suite, tasks, cfg.replay_first, cfg[REPLAYED.count])
+    keys = {kind: range(cfg[kind.count]) for kind in KINDS}
+    keys[REPLAYED] = [k for t, k in replays if t == tasks[0]]
     everything = [(t, k, kind, replays[t, k].seed if kind == REPLAYED else cfg.seed + kind.seed_offset + k)
-                  for kind in KINDS for t in tasks for k in range(cfg[kind.count])]
+                  for kind in KINDS for t in tasks for k in keys[kind]]
     noise = float(cfg.action_noise)
     work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging),
              replays[t, k] if kind == REPLAYED else None)
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
     # The noise scale (and the replayed run) decide episodes' content: a resumed run with others must not mix them.
-    replay = [str(resolve_path(cfg.replay_from)), int(cfg.replay_first)] if replays else None
+    replay = [[str(resolve_path(run)), int(cfg.replay_first)] for run in runs] if replays else None
     code = staged_code(staging, {**env_cfg, "action_noise": noise}, adding=bool(work), replay=replay)
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
@@ -119,10 +129,10 @@ def run_demos(cfg: DictConfig) -> dict:
                 bar.set_postfix_str("ok" if ok else "expert failed")
     bar.close()
 
-    summary = summarise(staging, cfg.suite, tasks, cfg.episodes_per_task)
+    summary = summarise(staging, cfg.suite, tasks, keys[ORDINARY])
     for kind in KINDS[1:]:
-        if cfg[kind.count]:
-            summary[kind.summary_key] = summarise(staging, cfg.suite, tasks, cfg[kind.count], kind)
+        if keys[kind]:
+            summary[kind.summary_key] = summarise(staging, cfg.suite, tasks, keys[kind], kind)
     episodes = sorted(
         stem.with_suffix(".npz")
         for t, k, kind, _ in everything
@@ -138,16 +148,35 @@ def run_demos(cfg: DictConfig) -> dict:
     return summary
 
 
-def load_replays(run: str | None, suite: str, tasks: list[int], first: int, count: int) -> dict:
-    """(task, k) -> Replay of the run's episode `first + k` of that task: a finished `vlactl rollout` run's episodes
-    (usually cut at its window, `max_steps=15`), replayed from the same initial state, seed and gripper, so that the
-    expert records its way back from exactly the states that run's policy and steering reached (DAgger-style).
-    `first` skips the episodes whose initial states an evaluation starts from (a 10 x 10 run: 0-9)."""
+def replay_runs(replay_from) -> list[str]:
+    """`replay_from` as a list of run folders: one run, a list of them, or none."""
+    if replay_from is None:
+        return []
+    return [replay_from] if isinstance(replay_from, str) else [str(run) for run in replay_from]
+
+
+def load_replays(runs: list[str], suite: str, tasks: list[int], first: int, count: int) -> dict:
+    """(task, k) -> Replay of episode `first + j` of that task in the r-th run, k = r * REPLAY_STRIDE + j: finished
+    `vlactl rollout` runs' episodes (usually cut at their window, `max_steps=15`), each replayed from the same initial
+    state, seed and gripper, so that the expert records its way back from exactly the states that run's policy and
+    steering reached (DAgger-style); `count` from each run. `first` skips the episodes whose initial states an
+    evaluation starts from (a 10 x 10 run: 0-9)."""
     if not count:
         return {}
-    if run is None:
-        raise UsageError("replayed_episodes_per_task needs replay_from=<a vlactl rollout run folder>")
+    if not runs:
+        raise UsageError("replayed_episodes_per_task needs replay_from=<a vlactl rollout run folder, or a list of them>")
     check_non_negative("replay_first", first)
+    if count > REPLAY_STRIDE:
+        raise UsageError(f"replayed_episodes_per_task={count}: at most {REPLAY_STRIDE} from each run")
+    replays = {}
+    for r, run in enumerate(runs):
+        replays |= {(t, r * REPLAY_STRIDE + j): replay for (t, j), replay in
+                    _run_replays(run, suite, tasks, first, count).items()}
+    return replays
+
+
+def _run_replays(run: str, suite: str, tasks: list[int], first: int, count: int) -> dict:
+    """(task, j) -> Replay of the run's episode `first + j` of that task."""
     folder = resolve_path(run)
     if not (folder / "episodes.parquet").exists():
         raise UsageError(f"replay_from={run}: no episodes.parquet there; give a finished `vlactl rollout` run folder")
@@ -173,11 +202,11 @@ def load_replays(run: str | None, suite: str, tasks: list[int], first: int, coun
     return replays
 
 
-def summarise(staging: Path, suite: str, tasks: list[int], per_task: int, kind: Kind = ORDINARY) -> dict:
+def summarise(staging: Path, suite: str, tasks: list[int], keys, kind: Kind = ORDINARY) -> dict:
     rows = {}
     for t in tasks:
-        ok = sum(episode_stem(staging, t, k, kind).with_suffix(".npz").exists() for k in range(per_task))
-        failed = sum(episode_stem(staging, t, k, kind).with_suffix(".json").exists() for k in range(per_task))
+        ok = sum(episode_stem(staging, t, k, kind).with_suffix(".npz").exists() for k in keys)
+        failed = sum(episode_stem(staging, t, k, kind).with_suffix(".json").exists() for k in keys)
         rows[t] = {"attempted": ok + failed, "succeeded": ok, "failed": failed,
                    "success_rate": ok / (ok + failed) if ok + failed else None}
     attempted = sum(r["attempted"] for r in rows.values())
