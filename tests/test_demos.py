@@ -233,6 +233,10 @@ def test_replays_extend_a_set_made_without_them_but_never_mix_two_runs(tmp_path)
     assert json.loads((staging / CODE_NAME).read_text())["replay"] == [a, b]
     assert staged_code(staging, env, adding=True, replay=[a]) == code_fingerprint(env)  # a alone: b's stay recorded
     assert json.loads((staging / CODE_NAME).read_text())["replay"] == [a, b]
+    (staging / "task00" / f"{REPLAYED.prefix}0000.npz").unlink()
+    assert staged_code(staging, env, adding=True, replay=[b]) == code_fingerprint(env)  # none replayed yet: replaced
+    assert json.loads((staging / CODE_NAME).read_text())["replay"] == [b]
+    (staging / "task00" / f"{REPLAYED.prefix}0000.npz").write_bytes(b"")
     (staging / CODE_NAME).write_text(json.dumps({"code": code_fingerprint(env), "replay": a}))  # one run, as recorded
     assert staged_code(staging, env, adding=True, replay=[a, b]) == code_fingerprint(env)   # before lists
     with pytest.raises(UsageError, match="not from runs/b"):

@@ -78,7 +78,10 @@ def staged_code(staging: Path, env_cfg: dict, adding: bool, replay: list | None 
         raise UsageError(f"{staging} holds episodes replayed from {_runs(before)}, not from {_runs(replay)}: choose "
                          "another output_dir=... or delete that folder")
     record = {"code": staged}
-    if (now := max(before or [], replay if adding and replay else [], key=len)):  # only new replays extend it
+    now = before
+    if adding and replay and not (before and before[:len(replay)] == replay):  # not the recorded runs' first ones
+        now = replay  # more runs after the recorded ones, or other runs where none were replayed yet
+    if now:
         record["replay"] = now
     if staged is not None and record != saved:
         atomic_write_json(mark, record)
