@@ -5,7 +5,7 @@
 - OpenVLA stand-in: OpenVLA's modeling code lives on the hub, so a tiny Hugging Face LLaVA (SigLIP patches projected
   into a Llama decoder, the same [BOS, patches, prompt] layout once the prompt starts with `<image>`) with OpenVLA's
   `norm_stats` in its config.
-- π0.5: LeRobot's own `PI05Policy` on openpi's transformers branch (transformers-openpi, in .venv-pi05), tiny and
+- π0.5: LeRobot's own `PI05Policy` on openpi's transformers branch (transformers-openpi, laid over .venv), tiny and
   saved with its pipelines; it builds and runs inside `pi05_tiny`, which shrinks the sizes LeRobot hard-wires.
 """
 
@@ -120,7 +120,7 @@ def write_llava(folder: Path, seed: int = 0, text: dict = None, vision: dict = T
     return folder
 
 
-# --- π0.5: LeRobot's own PI05Policy on openpi's transformers branch (.venv-pi05: `make test-real`) -----------------
+# --- π0.5: LeRobot's own PI05Policy on openpi's transformers branch (`make test-real`) ------------------------
 # LeRobot 0.4.4 builds π0.5 from full-size Gemma variants (a full-size π0.5 takes minutes to construct on 2 cores);
 # `pi05_tiny` shrinks what it hard-wires. Everything else is LeRobot's and the branch's own code.
 PALIGEMMA_TOKENIZER = "google/paligemma-3b-pt-224"  # the hub id LeRobot's π0.5 pipeline saves and loads

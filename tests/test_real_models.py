@@ -155,7 +155,7 @@ def test_smolvla_collect_runs_through_the_pipeline_command(smolvla_checkpoint, t
 
 # --- π0.5 (LeRobot's own class on openpi's transformers branch, tiny: see pi05_tiny) --------------------------------
 NO_OPENPI = ("π0.5 runs on openpi's transformers branch (transformers-openpi), not this transformers: `make test-real` "
-             "runs these tests in .venv-pi05")
+             "runs these tests with it laid over .venv")
 
 
 @pytest.fixture(scope="module", params=["float32", "bfloat16"])
