@@ -196,7 +196,7 @@ test-slow:
 
 # The real-model tests with π0.5 on openpi's transformers branch (PyPI's transformers-openpi, imported as
 # `transformers`): .venv keeps transformers 4.57 for everything else, so the branch and the tokenizers it needs go into
-# a folder of their own, first on PYTHONPATH over .venv (~15 MB against a second 8 GB environment). Re-running reuses it
+# a folder of their own, first on PYTHONPATH over .venv (118 MB against a second 8 GB environment). Re-running reuses it
 # (reinstalled when requirements-pi05.txt changes). Not `.[pi05]`: LeRobot's torch<2.11 pin.
 PI05_SITE := .pi05-site
 $(PI05_SITE)/.installed: requirements-pi05.txt | $(BIN)/python
