@@ -47,7 +47,8 @@ demo: install
 # second cosine cycle. The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way
 # back after the arm was raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes),
 # averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the
-# expert's way back from the states its own steered stop leaves (DAgger) and averaged once more: each fine-tune alone
+# expert's way back from the states its own steered stop leaves (DAgger) and averaged once more, then a second DAgger
+# round on the stops of both pausing constraints, averaged the same way: each fine-tune alone
 # loses tasks the checkpoint before solved, the average keeps them and most of the way back it learned
 # (docs/models.md). The robust3 perturbed set is also what the shipped probes are fitted on.
 # Every step resumes where it stopped when re-run.
@@ -56,11 +57,12 @@ DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
 STAGES_autoregressive ?= continued
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
-STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup
+STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger ?= dataset=data/demos/libero_spatial_dagger steps=4000 lr=1e-4 warmup_steps=200
+TUNE_hybrid_dagger4 ?= dataset=data/demos/libero_spatial_dagger4 steps=4000 lr=1e-4 warmup_steps=200
 # A stage's demonstrations made from the checkpoint so far (`current`), before its fine-tune: PREPARE_<model>_<stage>.
 # DAgger on the pushed stop: probes fitted on the checkpoint so far, its control+pause height=high rollouts cut at 15
 # steps (the window and the stop it leaves), and each replayed from the same start and handed to the expert (15 a
@@ -73,6 +75,20 @@ define PREPARE_hybrid_dagger
 	$(call extended_demos,data/demos/libero_spatial_dagger,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=15 replay_from=$(current)/stops-height-high,\
 	  data/demos/libero_spatial_robust3)
+endef
+# A second DAgger round on the stops of both pausing constraints (height=high's 15 steps, speed=low's 25), 10 rollouts
+# a task each (init states 10-19), 5 replays a task from each beside robust3's episodes: a smaller share of replays
+# than the first round's, which kept unconstrained success where a full share lost it (docs/models.md). About 55 min.
+define PREPARE_hybrid_dagger4
+	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
+	$(foreach c,height=high:15 speed=low:25,$(BIN)/vlactl rollout model=$(current)/checkpoint \
+	  probes=$(current)/probes/steer stop_probes=$(current)/probes/stop constraint=$(word 1,$(subst :, ,$(c))) \
+	  method=control pause=true first_episode=10 episodes_per_task=10 max_steps=$(word 2,$(subst :, ,$(c))) workers=2 \
+	  output_root=$(current) run_name=stops-$(subst =,-,$(word 1,$(subst :, ,$(c))))
+	)
+	$(call extended_demos,data/demos/libero_spatial_dagger4,episodes_per_task=10 recovery_episodes_per_task=5 \
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 \
+	  replay_from=[$(current)/stops-speed-low$(comma)$(current)/stops-height-high],data/demos/libero_spatial_robust3)
 endef
 # One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
 # fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.
