@@ -67,11 +67,16 @@ TUNE_hybrid_dagger4 ?= dataset=data/demos/libero_spatial_dagger4 steps=4000 lr=1
 # DAgger on the pushed stop: probes fitted on the checkpoint so far, its control+pause height=high rollouts cut at 15
 # steps (the window and the stop it leaves), and each replayed from the same start and handed to the expert (15 a
 # task, init states 10-24; evaluations use 0-9) beside robust3's episodes. About 70 min on 2 cores.
+# The checkpoint so far under control+pause with its own probes (constraint, window, episodes a task), cut at the window,
+# on init states from 10 (evaluations use 0-9): the stops a DAgger round replays, in $(current)/stops-<constraint>.
+define stop_runs
+	$(BIN)/vlactl rollout model=$(current)/checkpoint probes=$(current)/probes/steer stop_probes=$(current)/probes/stop \
+	  constraint=$(1) method=control pause=true first_episode=10 episodes_per_task=$(3) max_steps=$(2) workers=2 \
+	  output_root=$(current) run_name=stops-$(subst =,-,$(1))
+endef
 define PREPARE_hybrid_dagger
 	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
-	$(BIN)/vlactl rollout model=$(current)/checkpoint probes=$(current)/probes/steer stop_probes=$(current)/probes/stop \
-	  constraint=height=high method=control pause=true first_episode=10 episodes_per_task=15 max_steps=15 workers=2 \
-	  output_root=$(current) run_name=stops-height-high
+	$(call stop_runs,height=high,15,15)
 	$(call extended_demos,data/demos/libero_spatial_dagger,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=15 replay_from=$(current)/stops-height-high,\
 	  data/demos/libero_spatial_robust3)
@@ -81,11 +86,8 @@ endef
 # than the first round's, which kept unconstrained success where a full share lost it (docs/models.md). About 55 min.
 define PREPARE_hybrid_dagger4
 	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
-	$(foreach c,height=high:15 speed=low:25,$(BIN)/vlactl rollout model=$(current)/checkpoint \
-	  probes=$(current)/probes/steer stop_probes=$(current)/probes/stop constraint=$(word 1,$(subst :, ,$(c))) \
-	  method=control pause=true first_episode=10 episodes_per_task=10 max_steps=$(word 2,$(subst :, ,$(c))) workers=2 \
-	  output_root=$(current) run_name=stops-$(subst =,-,$(word 1,$(subst :, ,$(c))))
-	)
+	$(call stop_runs,height=high,15,10)
+	$(call stop_runs,speed=low,25,10)
 	$(call extended_demos,data/demos/libero_spatial_dagger4,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 \
 	  replay_from=[$(current)/stops-speed-low$(comma)$(current)/stops-height-high],data/demos/libero_spatial_robust3)
