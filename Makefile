@@ -63,10 +63,6 @@ TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger ?= dataset=data/demos/libero_spatial_dagger steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger4 ?= dataset=data/demos/libero_spatial_dagger4 steps=4000 lr=1e-4 warmup_steps=200
-# A stage's demonstrations made from the checkpoint so far (`current`), before its fine-tune: PREPARE_<model>_<stage>.
-# DAgger on the pushed stop: probes fitted on the checkpoint so far, its control+pause height=high rollouts cut at 15
-# steps (the window and the stop it leaves), and each replayed from the same start and handed to the expert (15 a
-# task, init states 10-24; evaluations use 0-9) beside robust3's episodes. About 70 min on 2 cores.
 # The checkpoint so far under control+pause with its own probes (constraint, window, episodes a task), cut at the window,
 # on init states from 10 (evaluations use 0-9): the stops a DAgger round replays, in $(current)/stops-<constraint>.
 define stop_runs
@@ -74,6 +70,10 @@ define stop_runs
 	  constraint=$(1) method=control pause=true first_episode=10 episodes_per_task=$(3) max_steps=$(2) workers=2 \
 	  output_root=$(current) run_name=stops-$(subst =,-,$(1))
 endef
+# A stage's demonstrations made from the checkpoint so far (`current`), before its fine-tune: PREPARE_<model>_<stage>.
+# DAgger on the pushed stop: probes fitted on the checkpoint so far, its control+pause height=high rollouts cut at 15
+# steps (the window and the stop it leaves), and each replayed from the same start and handed to the expert (15 a
+# task, init states 10-24; evaluations use 0-9) beside robust3's episodes. About 70 min on 2 cores.
 define PREPARE_hybrid_dagger
 	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
 	$(call stop_runs,height=high,15,15)
