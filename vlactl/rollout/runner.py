@@ -209,11 +209,13 @@ def _check_probe_weights(run: Path, model: str) -> None:
     """Probes fitted on other weights of the same model name (a retrained checkpoint) read nothing: refused."""
     from vlactl.models.registry import weights_fingerprint
 
-    fitted = probe_provenance(run).get("weights")
+    provenance = probe_provenance(run)
+    fitted = provenance.get("weights")
     current = weights_fingerprint(model) if fitted else None
     if fitted and current and fitted != current:
-        raise UsageError(f"the probes in {str(run)!r} were fitted on weights {fitted} of {model!r}, not on its weights "
-                         f"now ({current}); refit them (`make probes`, or collect + train-probes)")
+        raise UsageError(f"the probes in {str(run)!r} were fitted on {provenance.get('model', '?')!r} (weights "
+                         f"{fitted}), not on model={model} (weights {current}); refit them (`make probes`, or collect + "
+                         f"train-probes)")
 
 
 def probe_provenance(run: Path | None) -> dict:
