@@ -80,12 +80,14 @@ def test_probes_of_other_weights_of_the_same_model_are_refused_before_any_episod
     import json
     import shutil
 
+    from vlactl.steering.train_probes import PROBE_PROVENANCE
+
     checkpoint = tmp_path / "checkpoint"
     checkpoint.mkdir()
     tiny_policy("hybrid", seed=0).save_pretrained(checkpoint)
     fitted = tmp_path / "probes"
     shutil.copytree(probes, fitted)
-    (fitted / "provenance.json").write_text(json.dumps({"model": "hybrid", "weights": "0123456789abcdef"}))
+    (fitted / PROBE_PROVENANCE).write_text(json.dumps({"model": "hybrid", "weights": "0123456789abcdef"}))
     cfg = rollout_config([f"model={checkpoint}", "tasks=[0]", "episodes_per_task=1", f"output_root={tmp_path / 'runs'}",
                           "constraint=gripper=open", "method=control", f"probes={fitted}"])
     with pytest.raises(UsageError, match=r"fitted on 'hybrid' \(weights 0123456789abcdef\), not on model=.*checkpoint"):
