@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from vlactl.env.perturbations import Perturbation, parse_perturbation, random_perturbation
+from vlactl.env.perturbations import Perturbation, parse_perturbation, parse_tilt_size, random_perturbation
 from vlactl.errors import UsageError
 from vlactl.rollout.constraints import (Bounds, action_bound, action_quantity, filter_action, parse_constraint,
                                        parse_constraints)
@@ -77,6 +77,16 @@ def test_demonstration_perturbations_cover_every_kind_reproducibly():
     tilts = [random_perturbation(np.random.default_rng(k), k, ("tilt",)) for k in range(20)]
     assert {p.kind for p in tilts} == {"tilt"} and all(0.03 <= abs(p.size) <= 0.15 for p in tilts)
     assert min(p.size for p in tilts) < 0 < max(p.size for p in tilts)  # turned either way
+    small = [random_perturbation(np.random.default_rng(k), k, ("tilt",), (0.01, 0.04)) for k in range(20)]
+    assert all(0.01 <= abs(p.size) <= 0.04 for p in small)
+
+
+@pytest.mark.parametrize("value, message", [([0.04, 0.01], r"tilt_size=\[0.04,0.01\] out of range"),
+                                            ([0.0, 0.1], "out of range"), ([0.1, 0.6], "<= 0.5"),
+                                            ("small", "must be \\[low,high\\], got 'small'")])
+def test_tilt_sizes_out_of_range_are_refused_by_name(value, message):
+    with pytest.raises(UsageError, match=message):
+        parse_tilt_size(value)
 
 
 def test_height_barrier_lets_the_hand_approach_the_start_height_by_the_decay_rate():

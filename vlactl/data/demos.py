@@ -24,6 +24,7 @@ from tqdm import tqdm
 from vlactl.config import resolve_path, save_config
 from vlactl.data import recording
 from vlactl.data.recording import KINDS, ORDINARY, REPLAYED, Kind, Replay, episode_stem, generate_episode, worker_init
+from vlactl.env.perturbations import parse_tilt_size
 from vlactl.errors import UsageError, check_choice, check_non_negative, check_positive
 from vlactl.io import atomic_write_json, ensure_writable_dir
 
@@ -116,12 +117,15 @@ def run_demos(cfg: DictConfig) -> dict:
     everything = [(t, k, kind, replays[t, k].seed if kind == REPLAYED else cfg.seed + kind.seed_offset + k)
                   for kind in KINDS for t in tasks for k in keys[kind]]
     noise = float(cfg.action_noise)
-    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, str(staging),
+    tilt = parse_tilt_size(cfg.tilt_size)
+    work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, tilt, str(staging),
              replays[t, k] if kind == REPLAYED else None)
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
-    # The noise scale (and the replayed run) decide episodes' content: a resumed run with others must not mix them.
+    # The noise scale, the tilts (and the replayed run) decide episodes' content: a resumed run with others must not
+    # mix them.
     replay = [[str(resolve_path(run)), int(cfg.replay_first)] for run in runs] if replays else None
-    code = staged_code(staging, {**env_cfg, "action_noise": noise}, adding=bool(work), replay=replay)
+    settings = {**env_cfg, "action_noise": noise, "tilt_size": list(tilt)}
+    code = staged_code(staging, settings, adding=bool(work), replay=replay)
     total = len(everything)
     bar = tqdm(total=total, initial=total - len(work), desc=f"demos {cfg.suite}", unit="ep")
     if work:

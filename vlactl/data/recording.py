@@ -81,7 +81,7 @@ def generate_episode(job) -> bool:
     from vlactl.env.perturbations import DEMONSTRATED, random_perturbation
     from vlactl.expert.scripted import CLOSE, ExpertConfig, ScriptedExpert
 
-    suite, task, k, kind, seed, env_cfg, action_noise, staging, replay = job
+    suite, task, k, kind, seed, env_cfg, action_noise, tilt_size, staging, replay = job
     env = _env(suite, task, env_cfg)
     init_state = replay.init_state if replay else k % env.n_init_states
     # A recovery demonstration misses its first grasp on purpose and is recorded from the lift of that empty
@@ -111,7 +111,7 @@ def generate_episode(job) -> bool:
     # then hands the arm to the expert: the way back from the states that policy and push really reach (DAgger).
     kinds = {PERTURBED: DEMONSTRATED, TILTED: ("tilt",)}.get(kind)
     perturb = (replay.hook if replay
-               else random_perturbation(np.random.default_rng(seed), k, kinds).hook() if kinds else None)
+               else random_perturbation(np.random.default_rng(seed), k, kinds, tilt_size).hook() if kinds else None)
     start = time.time()
     gripper = replay.start_gripper if replay else "closed" if closed_steps or closed_approach else "open"
     obs = env.reset(init_state, seed=seed, render=True, gripper=gripper)

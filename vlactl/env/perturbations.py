@@ -36,6 +36,7 @@ KINDS = {
     "tilt": (0.07, (0.0, 0.5), "radians about the world x axis"),
 }
 DEMONSTRATED = ("raise", "hold", "shift", "slow", "close")  # what perturbed demonstrations cycle through (tilt: its own kind)
+TILT_SIZE = (0.03, 0.15)  # radians, either way: the turns tilted demonstrations draw from unless told otherwise
 SERVO_GAIN = 14.0  # action units per metre of position error: ~70% of the error per step, as the scripted expert
 ROTATION_GAIN = ExpertConfig.kr / ROT_SCALE  # action units per radian of orientation error: the expert's servo
 CLOSE = 1.0
@@ -116,14 +117,28 @@ def parse_perturbation(kind: str | None, start: int = 0, steps: int = 15, size: 
     return Perturbation(kind, int(start), int(steps), size)
 
 
-def random_perturbation(rng: np.random.Generator, index: int, kinds: tuple[str, ...] = DEMONSTRATED) -> Perturbation:
+def random_perturbation(rng: np.random.Generator, index: int, kinds: tuple[str, ...] = DEMONSTRATED,
+                        tilt: tuple[float, float] = TILT_SIZE) -> Perturbation:
     """The perturbation of a demonstration set's `index`-th perturbed episode: `kinds` in turn, so every kind is
     equally represented; start, length and size drawn around what the closed-loop constraints do to a policy (the
-    first 15-25 steps; a hand 5-10 cm off its path, or turned by up to 0.15 rad either way)."""
+    first 15-25 steps; a hand 5-10 cm off its path, or turned by `tilt` radians either way)."""
     kind = kinds[index % len(kinds)]
     start = int(rng.integers(0, 30, endpoint=True))
     steps = int(rng.integers(10, 25, endpoint=True))
     side = rng.choice([-1.0, 1.0])
     size = {"raise": rng.uniform(0.04, 0.10), "shift": rng.uniform(0.03, 0.07) * side,
-            "slow": rng.uniform(0.2, 0.5), "tilt": rng.uniform(0.03, 0.15) * side}.get(kind)
+            "slow": rng.uniform(0.2, 0.5), "tilt": rng.uniform(*tilt) * side}.get(kind)
     return Perturbation(kind, start, steps, None if size is None else float(size))
+
+
+def parse_tilt_size(value) -> tuple[float, float]:
+    """`tilt_size=[low,high]` (radians) -> (low, high), within the tilt perturbation's allowed sizes; else a one-line
+    UsageError."""
+    _, (lowest, highest), meaning = KINDS["tilt"]
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise UsageError(f"tilt_size must be [low,high], got {value!r}") from None
+    if not lowest < low <= high <= highest:
+        raise UsageError(f"tilt_size=[{low:g},{high:g}] out of range: {meaning}, {lowest:g} < low <= high <= {highest:g}")
+    return low, high
