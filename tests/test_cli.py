@@ -34,6 +34,7 @@ def test_help_lists_the_pipeline():
         (["rollout", "model=/tmp"], "'/tmp' is a folder but not a checkpoint (no config.json"),
         (["rollout", "model=random", "env.image_size=-3"], "env.image_size must be > 0, got -3"),
         (["demos", "env.mesh_cell_mm=-2"], "env.mesh_cell_mm must be >= 0, got -2"),
+        (["demos", "tilt_size=[0.04,0.01]", "output_dir=/tmp/vlactl-never-made"], "tilt_size=[0.04,0.01] out of range"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(args, needle):

@@ -101,6 +101,7 @@ def run_demos(cfg: DictConfig) -> dict:
     for kind in KINDS:
         check_non_negative(kind.count, cfg[kind.count])
     check_non_negative("action_noise", cfg.action_noise)
+    tilt = parse_tilt_size(cfg.tilt_size)
     check_positive("workers", cfg.workers)
     env_cfg = OmegaConf.to_container(cfg.env, resolve=True)
     check_env_config(env_cfg)
@@ -117,7 +118,6 @@ def run_demos(cfg: DictConfig) -> dict:
     everything = [(t, k, kind, replays[t, k].seed if kind == REPLAYED else cfg.seed + kind.seed_offset + k)
                   for kind in KINDS for t in tasks for k in keys[kind]]
     noise = float(cfg.action_noise)
-    tilt = parse_tilt_size(cfg.tilt_size)
     work = [(cfg.suite, t, k, kind, seed, env_cfg, noise, tilt, str(staging),
              replays[t, k] if kind == REPLAYED else None)
             for t, k, kind, seed in everything if not _done(staging, t, k, kind)]
