@@ -5,9 +5,12 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
+from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
-from vlactl.env.perturbations import Perturbation, parse_perturbation, parse_tilt_size, random_perturbation
+from vlactl.config import CONF_DIR
+from vlactl.env.perturbations import (TILT_SIZE, Perturbation, parse_perturbation, parse_tilt_size,
+                                       random_perturbation)
 from vlactl.errors import UsageError
 from vlactl.rollout.constraints import (Bounds, action_bound, action_quantity, filter_action, parse_constraint,
                                        parse_constraints)
@@ -79,6 +82,10 @@ def test_demonstration_perturbations_cover_every_kind_reproducibly():
     assert min(p.size for p in tilts) < 0 < max(p.size for p in tilts)  # turned either way
     small = [random_perturbation(np.random.default_rng(k), k, ("tilt",), (0.01, 0.04)) for k in range(20)]
     assert all(0.01 <= abs(p.size) <= 0.04 for p in small)
+
+
+def test_demos_default_tilts_are_the_ones_random_perturbation_draws():
+    assert tuple(OmegaConf.load(CONF_DIR / "demos.yaml").tilt_size) == TILT_SIZE
 
 
 @pytest.mark.parametrize("value, message", [([0.04, 0.01], r"tilt_size=\[0.04,0.01\] out of range"),
