@@ -143,7 +143,7 @@ def test_an_interrupted_run_resumes_from_its_finished_batches(probe_runs, tmp_pa
     pd.testing.assert_frame_equal(points, whole)
 
 
-def test_rollout_default_layers_follow_the_table(probe_runs, tmp_path):
+def test_rollout_default_layers_follow_the_table(probe_runs, tmp_path, capsys):
     demos, (source, _) = probe_runs
     metrics = pd.read_parquet(source / METRICS_NAME)
     rows = metrics[metrics["feature"] == "gripper_action"]
@@ -170,12 +170,16 @@ def test_rollout_default_layers_follow_the_table(probe_runs, tmp_path):
                               f"demos={demos}", "metres_per_unit=1.0"])
         return [p.layer for p in steering(cfg, parse_constraint(cfg.constraint)).probes]
 
+    capsys.readouterr()
     assert steered() == old_rule
+    assert "no controllability rows for gripper_action" in capsys.readouterr().err  # the fallback is said
     table = pd.read_parquet(measure(demos, probes, tmp_path / "map", "features=[gripper_action]")
                             / "controllability.parquet")
     score = table["gain"].abs() * table["r2"]
     best = table.loc[score.idxmax(), "layer"]
+    capsys.readouterr()
     assert steered() == (["expert.0", "expert.1"] if best == "expert" else [best])
+    assert "no controllability rows" not in capsys.readouterr().err
     # probes retrained since the table was measured: the table is ignored
     pd.read_parquet(probes / METRICS_NAME).assign(r2=0.5).to_parquet(probes / METRICS_NAME)
     retrained = pd.read_parquet(probes / METRICS_NAME)

@@ -12,6 +12,7 @@ Finished episodes live in parts/ (see `parts`); re-running the same command skip
 from __future__ import annotations
 
 import multiprocessing as mp
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -125,6 +126,10 @@ def steering(cfg: DictConfig, constraint) -> Steering:
             source = stop_run if feature in STOP_READOUTS and feature in stop_features else run
             control = controllability_rows(source, feature) if cfg.layers is None else None
             layers = _steered_layers(cfg.layers, tables[source][tables[source]["feature"] == feature], control)
+            if cfg.layers is None and control is None:  # said aloud: the most observable layer is seldom where a push reaches the actions
+                print(f"note: {source} has no controllability rows for {feature}: steering it at its best observable "
+                      f"layer {', '.join(layers)}; `vlactl controllability probes={source} features=[{feature}]` "
+                      "measures where a push reaches the actions", file=sys.stderr)
             probes += _load_probes(source, layers, feature, str(source))
         holds = _hold_probes(cfg, constraints, run, probes)
     meandiff = cfg.method == "meandiff"
