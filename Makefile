@@ -63,6 +63,7 @@ TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger ?= dataset=data/demos/libero_spatial_dagger steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger4 ?= dataset=data/demos/libero_spatial_dagger4 steps=4000 lr=1e-4 warmup_steps=200
+TUNE_hybrid_dagger6 ?= dataset=data/demos/libero_spatial_dagger6 steps=4000 lr=1e-4 warmup_steps=200
 # The checkpoint so far under control+pause with its own probes (constraint, window, episodes a task), cut at the window,
 # on init states from 10 (evaluations use 0-9): the stops a DAgger round replays, in $(current)/stops-<constraint>.
 define stop_runs
@@ -88,9 +89,22 @@ define PREPARE_hybrid_dagger4
 	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
 	$(call stop_runs,height=high,15,10)
 	$(call stop_runs,speed=low,25,10)
+	$(eval DAGGER4_STOPS := $(current)/stops-speed-low$(comma)$(current)/stops-height-high)
 	$(call extended_demos,data/demos/libero_spatial_dagger4,episodes_per_task=10 recovery_episodes_per_task=5 \
-	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 \
-	  replay_from=[$(current)/stops-speed-low$(comma)$(current)/stops-height-high],data/demos/libero_spatial_robust3)
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(DAGGER4_STOPS)],\
+	  data/demos/libero_spatial_robust3)
+endef
+# DAgger on the perturbations (a candidate stage, not yet in STAGES_hybrid: docs/models.md): the checkpoint so far taken over for its first 15 steps by each kind it came back from
+# least often (PERTURB_REPLAYED), 5 rollouts a task (init states 10-14) cut at step 40, each replayed and handed to the
+# expert, 5 a task from each beside the dagger4 set's episodes (its stops' replays among them). About 45 min.
+PERTURB_REPLAYED ?= raise close tilt slow shift
+define PREPARE_hybrid_dagger6
+	$(foreach k,$(PERTURB_REPLAYED),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=10 \
+	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
+	)
+	$(call extended_demos,data/demos/libero_spatial_dagger6,episodes_per_task=10 recovery_episodes_per_task=5 \
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(DAGGER4_STOPS)$(subst $(eval) ,,$(foreach \
+	  k,$(PERTURB_REPLAYED),$(comma)$(current)/perturb-$(k)))],data/demos/libero_spatial_dagger4)
 endef
 # One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
 # fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.
