@@ -94,17 +94,18 @@ define PREPARE_hybrid_dagger4
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(DAGGER4_STOPS)],\
 	  data/demos/libero_spatial_robust3)
 endef
-# DAgger on the perturbations (a candidate stage, not yet in STAGES_hybrid: docs/models.md): the checkpoint so far taken over for its first 15 steps by each kind it came back from
-# least often (PERTURB_REPLAYED), 5 rollouts a task (init states 10-14) cut at step 40, each replayed and handed to the
-# expert, 5 a task from each beside the dagger4 set's episodes (its stops' replays among them). About 45 min.
+# DAgger on the perturbations (a candidate stage, not yet in STAGES_hybrid: docs/models.md): the checkpoint so far
+# taken over for its first 15 steps by each kind it came back from least often (PERTURB_REPLAYED), 5 rollouts a task
+# (init states 10-14) cut at step 40, each replayed and handed to the expert, 5 a task from each beside the dagger4
+# set's episodes (its stops' replays among them). About 45 min.
 PERTURB_REPLAYED ?= raise close tilt slow shift
 define PREPARE_hybrid_dagger6
 	$(foreach k,$(PERTURB_REPLAYED),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=10 \
 	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
 	)
 	$(call extended_demos,data/demos/libero_spatial_dagger6,episodes_per_task=10 recovery_episodes_per_task=5 \
-	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(DAGGER4_STOPS)$(subst $(eval) ,,$(foreach \
-	  k,$(PERTURB_REPLAYED),$(comma)$(current)/perturb-$(k)))],data/demos/libero_spatial_dagger4)
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(DAGGER4_STOPS)$(comma)$(subst \
+	  $(eval) ,$(comma),$(foreach k,$(PERTURB_REPLAYED),$(current)/perturb-$(k)))],data/demos/libero_spatial_dagger4)
 endef
 # One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
 # fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.

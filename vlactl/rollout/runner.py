@@ -126,7 +126,7 @@ def steering(cfg: DictConfig, constraint) -> Steering:
             source = stop_run if feature in STOP_READOUTS and feature in stop_features else run
             control = controllability_rows(source, feature) if cfg.layers is None else None
             layers = _steered_layers(cfg.layers, tables[source][tables[source]["feature"] == feature], control)
-            if cfg.layers is None and control is None:  # said aloud: the most observable layer is seldom where a push reaches the actions
+            if cfg.layers is None and control is None:  # the most observable layer is seldom the most controllable
                 print(f"note: {source} has no controllability rows for {feature}: steering it at its best observable "
                       f"layer {', '.join(layers)}; `vlactl controllability probes={source} features=[{feature}]` "
                       "measures where a push reaches the actions", file=sys.stderr)
