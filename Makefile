@@ -82,9 +82,10 @@ define PREPARE_hybrid_dagger
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=15 replay_from=$(current)/stops-height-high,\
 	  data/demos/libero_spatial_robust3)
 endef
-# The stops of both pausing constraints (height=high's 15 steps, speed=low's 25) from the checkpoint so far, 10 rollouts
-# a task each (init states 10-19), and the list of their run folders for replay_from.
+# The stops of both pausing constraints (height=high's 15 steps, speed=low's 25) from the checkpoint so far under probes
+# fitted on it, 10 rollouts a task each (init states 10-19), and the list of their run folders for replay_from.
 define pausing_stops
+	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
 	$(call stop_runs,height=high,15,10)
 	$(call stop_runs,speed=low,25,10)
 endef
@@ -92,7 +93,6 @@ pausing_stop_runs = $(current)/stops-speed-low$(comma)$(current)/stops-height-hi
 # A second DAgger round on both pausing stops, 5 replays a task from each beside robust3's episodes: a smaller share of
 # replays than the first round's, which kept unconstrained success where a full share lost it (docs/models.md). About 55 min.
 define PREPARE_hybrid_dagger4
-	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
 	$(pausing_stops)
 	$(call extended_demos,data/demos/libero_spatial_dagger4,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(pausing_stop_runs)],\
@@ -101,10 +101,9 @@ endef
 # DAgger on the perturbations (a candidate stage, not yet in STAGES_hybrid: docs/models.md): the checkpoint so far
 # taken over for its first 15 steps by each kind it came back from least often (PERTURB_REPLAYED), 5 rollouts a task
 # (init states 10-14) cut at step 40, and its own pausing stops; each replayed and handed to the expert, 5 a task from
-# each beside robust3's episodes. About 100 min on 2 cores.
+# each beside robust3's episodes. About 110 min on 2 cores.
 PERTURB_REPLAYED ?= raise close tilt slow shift
 define PREPARE_hybrid_dagger6
-	$(call fit_probes,$(current)/checkpoint,$(PROBE_DEMOS),$(current)/probes)
 	$(pausing_stops)
 	$(foreach k,$(PERTURB_REPLAYED),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=10 \
 	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
