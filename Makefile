@@ -48,16 +48,17 @@ demo: install
 # back after the arm was raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes),
 # averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the
 # expert's way back from the states its own steered stop leaves (DAgger) and averaged once more, then a second DAgger
-# round on the stops of both pausing constraints, averaged the same way: each fine-tune alone
-# loses tasks the checkpoint before solved, the average keeps them and most of the way back it learned
-# (docs/models.md). The robust3 perturbed set is also what the shipped probes are fitted on.
+# round on the stops of both pausing constraints, averaged the same way, then DAgger on the perturbations (the policy's
+# own states after the arm was raised, closed, turned, slowed or shifted, and its own pausing stops), averaged again:
+# each fine-tune alone loses tasks the checkpoint before solved, the average keeps them and most of the way back it
+# learned (docs/models.md). The robust3 perturbed set is also what the shipped probes are fitted on.
 # Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
 STAGES_autoregressive ?= continued
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
-STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup
+STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
@@ -98,7 +99,7 @@ define PREPARE_hybrid_dagger4
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(pausing_stop_runs)],\
 	  data/demos/libero_spatial_robust3)
 endef
-# DAgger on the perturbations (a candidate stage, not yet in STAGES_hybrid: docs/models.md): the checkpoint so far
+# DAgger on the perturbations (docs/models.md): the checkpoint so far
 # taken over for its first 15 steps by each kind it came back from least often (PERTURB_REPLAYED), 5 rollouts a task
 # (init states 10-14) cut at step 40, and its own pausing stops; each replayed and handed to the expert, 5 a task from
 # each beside robust3's episodes. About 110 min on 2 cores.
