@@ -99,10 +99,10 @@ define PREPARE_hybrid_dagger4
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(pausing_stop_runs)],\
 	  data/demos/libero_spatial_robust3)
 endef
-# DAgger on the perturbations (docs/models.md): the checkpoint so far
-# taken over for its first 15 steps by each kind it came back from least often (PERTURB_REPLAYED), 5 rollouts a task
-# (init states 10-14) cut at step 40, and its own pausing stops; each replayed and handed to the expert, 5 a task from
-# each beside robust3's episodes. About 110 min on 2 cores.
+# DAgger on the perturbations (docs/models.md): the checkpoint so far taken over for its first 15 steps by each kind
+# it came back from least often (PERTURB_REPLAYED), 5 rollouts a task (init states 10-14) cut at step 40, and its own
+# pausing stops; each replayed and handed to the expert, 5 a task from each beside robust3's episodes. About 110 min
+# on 2 cores.
 PERTURB_REPLAYED ?= raise close tilt slow shift
 define PREPARE_hybrid_dagger6
 	$(pausing_stops)
