@@ -204,7 +204,7 @@ PAPER_DIR ?= outputs/paper/$(PAPER_MODEL)
 PAPER_EPISODES ?= 10
 PAPER_DEMOS ?= data/demos/libero_spatial
 PAPER_CONSTRAINTS ?= gripper=open gripper=closed height=low height=high speed=low speed=high
-PAPER_METHODS ?= none prompt control alpha meandiff filter filter+pause  # <m>+pause: method=<m> pause=true (control+pause too)
+PAPER_METHODS ?= none prompt control control+pause alpha meandiff filter filter+pause  # <m>+pause: method=<m> pause=true
 PAPER_ARGS ?=
 PAPER_MODEL_ARGS ?=  # a real model's options, e.g. model.checkpoint=lerobot/pi05_libero (docs/real-models.md)
 PAPER_PROBE_ARGS ?=  # train-probes options for every probe set, e.g. device=cuda
