@@ -109,8 +109,8 @@ def test_fine_tuning_starts_from_the_checkpoint_and_refuses_another_architecture
 
 
 def test_average_policies_writes_the_mean_of_fine_tunes_and_refuses_other_starts(demos, tmp_path):
-    """A model soup: two fine-tunes of one start average weight by weight into a checkpoint that loads and predicts;
-    the same config written in another layout (the shipped soup's, without a trailing newline) still averages; a
+    """A model soup: two fine-tunes of one start average weight by weight into a checkpoint that loads and predicts,
+    uniformly or with given mixing weights (one per checkpoint, non-negative, else a one-line error); the same config written in another layout (the shipped soup's, without a trailing newline) still averages; a
     checkpoint with another normalisation, or a single one, is a one-line error and writes nothing."""
     start, other = tmp_path / "start", tmp_path / "other"
     run_train_policy(load_config("train_policy", overrides(demos, start, steps=2)))
@@ -130,6 +130,18 @@ def test_average_policies_writes_the_mean_of_fine_tunes_and_refuses_other_starts
     provenance = json.loads((soup / "checkpoint" / "provenance.json").read_text())
     assert [p["checkpoint"] for p in provenance["averaged"]] == [str(t) for t in tunes]
     assert load_policy(str(soup)).predict_action_chunk(observation()).shape[0] == 2
+    quarter = tmp_path / "quarter"
+    run_average_policies(load_config("average_policies", [f"policies=[{tunes[0]},{tunes[1]}]", "weights=[3,1]",
+                                                          f"output_dir={quarter}"]))
+    mixed = load_file(str(quarter / "checkpoint" / "model.safetensors"))
+    assert all(torch.allclose(mixed[k], 0.75 * weights[0][k] + 0.25 * weights[1][k]) for k in mixed)
+    provenance = json.loads((quarter / "checkpoint" / "provenance.json").read_text())
+    assert [p["mixing_weight"] for p in provenance["averaged"]] == [0.75, 0.25]
+    for bad in ("[1]", "[1,-1]", "[0,0]", "[a,1]"):
+        result = CliRunner().invoke(app, ["average-policies", f"policies=[{tunes[0]},{tunes[1]}]", f"weights={bad}",
+                                          f"output_dir={tmp_path / 'refused'}"])
+        assert isinstance(result.exception, UsageError) and "mixing weight" in str(result.exception)
+        assert not (tmp_path / "refused" / "checkpoint").exists()
     run_train_policy(load_config("train_policy", overrides(demos, other, "hybrid", 1)))
     (other / "checkpoint" / "normalization.json").write_text("{}")  # as if fitted on other demonstrations
     for given, message in (([tunes[0], other], "differs from .* in normalization.json"), ([tunes[0]], "two or more")):

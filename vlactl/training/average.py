@@ -1,6 +1,7 @@
-"""`vlactl average-policies`: the uniform average of the weights of checkpoints fine-tuned from one start (a "model
-soup", Wortsman et al., 2022). Two fine-tunes of the shipped hybrid that fail on different tasks average into one
-that fails on fewer (docs/models.md). The checkpoints must share the architecture, the normalisation and the
+"""`vlactl average-policies`: the average of the weights of checkpoints fine-tuned from one start (a "model soup",
+Wortsman et al., 2022), uniform or with given mixing weights (a fine-tune kept at less than half of its start's weights,
+as WiSE-FT interpolates). Two fine-tunes of the shipped hybrid that fail on different tasks average into one that
+fails on fewer (docs/models.md). The checkpoints must share the architecture, the normalisation and the
 tokenizer (every file but the weights and the provenance), so the average reads its inputs as each of them does.
 """
 
@@ -31,6 +32,12 @@ def run_average_policies(cfg: DictConfig) -> Path:
     if len(names) < 2:
         raise UsageError(f"policies={names}: give two or more checkpoints to average, e.g. "
                          "policies=[data/policies/hybrid,outputs/policies/hybrid-robust/checkpoint]")
+    mix = list(cfg.weights or [1.0] * len(names))
+    if (len(mix) != len(names) or not all(isinstance(m, (int, float)) and not isinstance(m, bool) for m in mix)
+            or min(mix) < 0 or sum(mix) <= 0):
+        raise UsageError(f"weights={mix}: give one non-negative mixing weight per checkpoint ({len(names)}), not all "
+                         "zero, e.g. weights=[3,1] keeps a quarter of the second; they are normalised to sum to 1")
+    mix = [float(m) / sum(mix) for m in mix]
     folders = [resolve_checkpoint(name) for name in names]
     first = folders[0]
     shared = sorted(p.name for p in first.iterdir() if p.is_file() and p.name not in (WEIGHTS_FILE, PROVENANCE))
@@ -53,7 +60,7 @@ def run_average_policies(cfg: DictConfig) -> Path:
     if len(renders) > 1:
         raise UsageError(f"policies={names} were trained on images rendered otherwise (provenance.json, env: "
                          f"{sorted(renders)}); average fine-tunes on one render setting")
-    averaged = {key: (sum(w[key].float() for w in weights) / len(weights)).to(value.dtype)
+    averaged = {key: sum(m * w[key].float() for m, w in zip(mix, weights)).to(value.dtype)
                 for key, value in weights[0].items()}
     out = ensure_writable_dir(resolve_path(cfg.output_dir), cfg.output_dir)
     with atomic_dir(out / CHECKPOINT_DIR) as tmp:
@@ -61,8 +68,8 @@ def run_average_policies(cfg: DictConfig) -> Path:
             shutil.copy2(first / file, tmp / file)
         save_file(averaged, str(tmp / WEIGHTS_FILE), metadata={"format": "pt"})
         atomic_write_json(tmp / PROVENANCE, {
-            "averaged": [{"checkpoint": name, "weights": weights_fingerprint(name), "provenance": source}
-                         for name, source in zip(names, sources)],
+            "averaged": [{"checkpoint": name, "weights": weights_fingerprint(name), "mixing_weight": m,
+                          "provenance": source} for name, m, source in zip(names, mix, sources)],
             "env": sources[0].get("env"),  # how the images were rendered (every source's): stages warn on others
             "git_commit": git_commit(),
             "environment": environment(),
