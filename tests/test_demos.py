@@ -34,6 +34,23 @@ def test_resume_reuses_finished_episodes(demo_run):
     assert [p.name for p in staged] == ["ep0000.npz", "ep0001.npz"]
 
 
+def test_rerun_with_nothing_new_leaves_the_written_dataset_alone(demo_run, monkeypatch):
+    """A re-run that adds no episode and finds the same summary skips the dataset writing; a missing summary (a write
+    cut short before it) writes again."""
+    import vlactl.data.lerobot_format as lerobot_format
+
+    out, _, second = demo_run
+    writes = []
+    monkeypatch.setattr(lerobot_format, "write_dataset", lambda root, *args: writes.append(root))
+    config = load_config("demos", ["suite=libero_spatial", "tasks=[0]", "workers=1", f"output_dir={out}",
+                                   "episodes_per_task=2"])
+    assert run_demos(config) == second and writes == []
+    saved = (out / "meta" / "vlactl_demos.json").read_text()
+    (out / "meta" / "vlactl_demos.json").unlink()
+    run_demos(config)
+    assert writes == [out] and (out / "meta" / "vlactl_demos.json").read_text() == saved
+
+
 def test_dataset_has_documented_frames(demo_run):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 

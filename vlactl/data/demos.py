@@ -147,9 +147,16 @@ def run_demos(cfg: DictConfig) -> dict:
     )
     from vlactl.data.lerobot_format import write_dataset
 
-    with tqdm(total=len(episodes), desc="writing LeRobot dataset", unit="ep") as wbar:
-        write_dataset(out, f"vlactl/{cfg.suite}", cfg.fps, cfg.env.image_size, (_load(p) for p in episodes), wbar)
-    atomic_write_json(out / "meta" / SUMMARY_NAME, {"config": OmegaConf.to_container(cfg), "code": code, **summary})
+    record = {"config": OmegaConf.to_container(cfg), "code": code, **summary}
+    written = out / "meta" / SUMMARY_NAME
+    # The summary is written last, after the dataset is renamed into place: an equal one means these episodes are
+    # already there, and a resumed queue skips minutes of writing.
+    if written.is_file() and json.loads(written.read_text()) == json.loads(json.dumps(record)):
+        print(f"{out}: already holds these {len(episodes)} episodes, not written again")
+    else:
+        with tqdm(total=len(episodes), desc="writing LeRobot dataset", unit="ep") as wbar:
+            write_dataset(out, f"vlactl/{cfg.suite}", cfg.fps, cfg.env.image_size, (_load(p) for p in episodes), wbar)
+        atomic_write_json(written, record)
     save_config(cfg, out)
     _print_summary(summary)
     return summary
