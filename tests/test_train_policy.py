@@ -110,8 +110,9 @@ def test_fine_tuning_starts_from_the_checkpoint_and_refuses_another_architecture
 
 def test_average_policies_writes_the_mean_of_fine_tunes_and_refuses_other_starts(demos, tmp_path):
     """A model soup: two fine-tunes of one start average weight by weight into a checkpoint that loads and predicts,
-    uniformly or with given mixing weights (one per checkpoint, non-negative, else a one-line error); the same config written in another layout (the shipped soup's, without a trailing newline) still averages; a
-    checkpoint with another normalisation, or a single one, is a one-line error and writes nothing."""
+    uniformly or with given mixing weights (one per checkpoint, non-negative, else a one-line error); the same config
+    written in another layout (the shipped soup's, without a trailing newline) still averages; a checkpoint with
+    another normalisation, or a single one, is a one-line error and writes nothing."""
     start, other = tmp_path / "start", tmp_path / "other"
     run_train_policy(load_config("train_policy", overrides(demos, start, steps=2)))
     tunes = [tmp_path / f"tune{seed}" for seed in (1, 2)]

@@ -151,7 +151,7 @@ def run_demos(cfg: DictConfig) -> dict:
     written = out / "meta" / SUMMARY_NAME
     # The summary is written last, after the dataset is renamed into place: an equal one means these episodes are
     # already there, and a resumed queue skips minutes of writing.
-    if written.is_file() and json.loads(written.read_text()) == json.loads(json.dumps(record)):
+    if written.is_file() and json.loads(written.read_text()) == json.loads(json.dumps(record, default=str)):
         print(f"{out}: already holds these {len(episodes)} episodes, not written again")
     else:
         with tqdm(total=len(episodes), desc="writing LeRobot dataset", unit="ep") as wbar:

@@ -37,7 +37,8 @@ def run_average_policies(cfg: DictConfig) -> Path:
             or min(mix) < 0 or sum(mix) <= 0):
         raise UsageError(f"weights={mix}: give one non-negative mixing weight per checkpoint ({len(names)}), not all "
                          "zero, e.g. weights=[3,1] keeps a quarter of the second; they are normalised to sum to 1")
-    mix = [float(m) / sum(mix) for m in mix]
+    total = sum(mix)
+    mix = [m / total for m in mix]
     folders = [resolve_checkpoint(name) for name in names]
     first = folders[0]
     shared = sorted(p.name for p in first.iterdir() if p.is_file() and p.name not in (WEIGHTS_FILE, PROVENANCE))
