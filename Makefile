@@ -58,13 +58,14 @@ DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
 STAGES_autoregressive ?= continued
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
-STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup
+STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup dagger7+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust3 ?= dataset=data/demos/libero_spatial_robust3 steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger ?= dataset=data/demos/libero_spatial_dagger steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger4 ?= dataset=data/demos/libero_spatial_dagger4 steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_dagger6 ?= dataset=data/demos/libero_spatial_dagger6 steps=4000 lr=1e-4 warmup_steps=200
+TUNE_hybrid_dagger7 ?= dataset=data/demos/libero_spatial_dagger7 steps=4000 lr=1e-4 warmup_steps=200
 # The checkpoint so far under control+pause with its own probes (constraint, window, episodes a task), cut at the window,
 # on init states from 10 (evaluations use 0-9): the stops a DAgger round replays, in $(current)/stops-<constraint>.
 define stop_runs
@@ -99,19 +100,35 @@ define PREPARE_hybrid_dagger4
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(pausing_stop_runs)],\
 	  data/demos/libero_spatial_robust3)
 endef
-# DAgger on the perturbations (docs/models.md): the checkpoint so far taken over for its first 15 steps by each kind
-# it came back from least often (PERTURB_REPLAYED), 5 rollouts a task (init states 10-14) cut at step 40, and its own
-# pausing stops; each replayed and handed to the expert, 5 a task from each beside robust3's episodes. About 110 min
-# on 2 cores.
+# The checkpoint so far taken over for its first 15 steps by each of the given perturbation kinds, 5 rollouts a task
+# (init states 10-14) cut at step 40: the runs a perturbation DAgger round replays, in $(current)/perturb-<kind>.
+define perturb_runs
+	$(foreach k,$(1),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=10 \
+	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
+	)
+endef
+join_commas = $(subst $(eval) ,$(comma),$(strip $(1)))
+# DAgger on the perturbations (docs/models.md): perturb_runs of the kinds it came back from least often
+# (PERTURB_REPLAYED) and its own pausing stops, each replayed and handed to the expert, 5 a task from each beside
+# robust3's episodes. About 110 min on 2 cores. dagger6_replays keeps the list for the next round.
 PERTURB_REPLAYED ?= raise close tilt slow shift
 define PREPARE_hybrid_dagger6
 	$(pausing_stops)
-	$(foreach k,$(PERTURB_REPLAYED),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=10 \
-	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
-	)
+	$(call perturb_runs,$(PERTURB_REPLAYED))
+	$(eval dagger6_replays := $(pausing_stop_runs)$(comma)$(call join_commas,$(foreach \
+	  k,$(PERTURB_REPLAYED),$(current)/perturb-$(k))))
 	$(call extended_demos,data/demos/libero_spatial_dagger6,episodes_per_task=10 recovery_episodes_per_task=5 \
-	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(pausing_stop_runs)$(comma)$(subst \
-	  $(eval) ,$(comma),$(foreach k,$(PERTURB_REPLAYED),$(current)/perturb-$(k)))],data/demos/libero_spatial_robust3)
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(dagger6_replays)],\
+	  data/demos/libero_spatial_robust3)
+endef
+# A second round on the perturbations the dagger6 checkpoint still came back from least often (PERTURB_REPLAYED_AGAIN):
+# its perturb_runs replayed beside dagger6's, 5 a task from each (docs/models.md, "A second DAgger round"). About 30 min.
+PERTURB_REPLAYED_AGAIN ?= raise close shift slow
+define PREPARE_hybrid_dagger7
+	$(call perturb_runs,$(PERTURB_REPLAYED_AGAIN))
+	$(call extended_demos,data/demos/libero_spatial_dagger7,episodes_per_task=10 recovery_episodes_per_task=5 \
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(dagger6_replays)$(comma)$(call \
+	  join_commas,$(foreach k,$(PERTURB_REPLAYED_AGAIN),$(current)/perturb-$(k)))],data/demos/libero_spatial_dagger6)
 endef
 # One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
 # fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.
