@@ -49,7 +49,8 @@ demo: install
 # averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the
 # expert's way back from the states its own steered stop leaves (DAgger) and averaged once more, then a second DAgger
 # round on the stops of both pausing constraints, averaged the same way, then DAgger on the perturbations (the policy's
-# own states after the arm was raised, closed, turned, slowed or shifted, and its own pausing stops), averaged again:
+# own states after the arm was raised, closed, turned, slowed or shifted, and its own pausing stops), averaged again,
+# then a second such round on that average's own perturbed states (raised, closed, slowed, shifted), averaged again:
 # each fine-tune alone loses tasks the checkpoint before solved, the average keeps them and most of the way back it
 # learned (docs/models.md). The robust3 perturbed set is also what the shipped probes are fitted on.
 # Every step resumes where it stopped when re-run.
