@@ -108,7 +108,7 @@ define perturb_runs
 	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
 	)
 endef
-join_commas = $(subst $(eval) ,$(comma),$(strip $(1)))
+perturb_run_list = $(call join_commas,$(foreach k,$(1),$(current)/perturb-$(k)))
 # DAgger on the perturbations (docs/models.md): perturb_runs of the kinds it came back from least often
 # (PERTURB_REPLAYED) and its own pausing stops, each replayed and handed to the expert, 5 a task from each beside
 # robust3's episodes. About 110 min on 2 cores. dagger6_replays keeps the list for the next round.
@@ -116,8 +116,7 @@ PERTURB_REPLAYED ?= raise close tilt slow shift
 define PREPARE_hybrid_dagger6
 	$(pausing_stops)
 	$(call perturb_runs,$(PERTURB_REPLAYED))
-	$(eval dagger6_replays := $(pausing_stop_runs)$(comma)$(call join_commas,$(foreach \
-	  k,$(PERTURB_REPLAYED),$(current)/perturb-$(k))))
+	$(eval dagger6_replays := $(pausing_stop_runs)$(comma)$(call perturb_run_list,$(PERTURB_REPLAYED)))
 	$(call extended_demos,data/demos/libero_spatial_dagger6,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(dagger6_replays)],\
 	  data/demos/libero_spatial_robust3)
@@ -129,7 +128,7 @@ define PREPARE_hybrid_dagger7
 	$(call perturb_runs,$(PERTURB_REPLAYED_AGAIN))
 	$(call extended_demos,data/demos/libero_spatial_dagger7,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(dagger6_replays)$(comma)$(call \
-	  join_commas,$(foreach k,$(PERTURB_REPLAYED_AGAIN),$(current)/perturb-$(k)))],data/demos/libero_spatial_dagger6)
+	  perturb_run_list,$(PERTURB_REPLAYED_AGAIN))],data/demos/libero_spatial_dagger6)
 endef
 # One stage (model, stage[+soup]); `current` is the checkpoint folder so far, advanced as the recipe expands: the
 # fine-tune's folder outputs/policies/<model>-<stage>, or its average's, outputs/policies/<model>-<stage>-soup.
@@ -183,6 +182,7 @@ STEER_FAMILIES ?= fit meandiff covariance
 CHOOSE_ARGS ?= frames=16 batch_size=16 targets=[-1,1]  # 16 frames x 2 pushes a unit: ~8 min a family on 2 busy cores
 STOP_PROBE_FEATURES ?= [dx,dy,dz,droll,dpitch,dyaw,speed,gripper_action]  # each fitted with the others regressed out
 comma := ,
+join_commas = $(subst $(eval) ,$(comma),$(strip $(1)))
 define fit_probes
 	$(BIN)/vlactl collect model=$(1) dataset=$(2) every=4 output_dir=$(3)/activations
 	$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/observe $(4)
@@ -190,7 +190,7 @@ define fit_probes
 	  features=$(STEER_FEATURES) family=$(f) $(STEER_PROBE_ARGS) $(4)
 	)
 	$(BIN)/vlactl controllability model=$(1) dataset=$(2) choose_into=$(3)/steer $(CHOOSE_ARGS) \
-	  probes=[$(subst $(eval) ,$(comma),$(foreach f,$(STEER_FAMILIES),$(3)/steer-$(f)))]
+	  probes=[$(call join_commas,$(foreach f,$(STEER_FAMILIES),$(3)/steer-$(f)))]
 	$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/stop features=$(STOP_PROBE_FEATURES) \
 	  family=partial $(STEER_PROBE_ARGS) $(4)
 	$(BIN)/vlactl controllability model=$(1) dataset=$(2) probes=$(3)/stop features=[dx,dy,dz,dyaw] $(CHOOSE_ARGS)
