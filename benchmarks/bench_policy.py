@@ -163,7 +163,8 @@ def two_constraint_steps(repeats: int) -> None:
     from vlactl.env.features import CONTROL_DT
     from vlactl.rollout.agents import VLAAgent
     from vlactl.rollout.constrained import ConstrainedAgent
-    from vlactl.rollout.runner import canonical_constraint, resolve_defaults, rollout_config, steering
+    from vlactl.rollout.plan import steering
+    from vlactl.rollout.runner import canonical_constraint, resolve_defaults, rollout_config
 
     if not (REPO_ROOT / "data" / "policies" / "hybrid").is_dir():
         print("two constraints: skipped, no shipped hybrid in data/policies/hybrid")

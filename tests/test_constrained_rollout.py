@@ -187,7 +187,7 @@ def test_mean_difference_pushes_by_alpha_along_its_direction(probes, tmp_path):
 
 def test_mean_difference_splits_on_the_feature_it_pushes_along(probes):
     from vlactl.rollout.constraints import parse_constraint
-    from vlactl.rollout.runner import mean_difference_directions
+    from vlactl.rollout.plan import mean_difference_directions
     from vlactl.steering.activations import ActivationStore
     from vlactl.steering.controller import mean_difference
 
@@ -253,7 +253,7 @@ def test_control_pause_bounds_the_translation_to_a_stop_where_the_barrier_binds(
 
 def test_the_stop_pushes_the_translation_and_the_yaw_read_outs_a_run_has():
     from vlactl.rollout.constraints import parse_constraint
-    from vlactl.rollout.runner import steered_features
+    from vlactl.rollout.plan import steered_features
 
     high, low = parse_constraint("height=high"), parse_constraint("speed=low")
     assert steered_features(high, "action", "control") == ("dz",)
@@ -267,7 +267,7 @@ def test_the_stop_pushes_the_translation_and_the_yaw_read_outs_a_run_has():
 def test_the_stop_takes_its_read_outs_from_the_stop_probes(probes, tmp_path):
     """stop_probes=: the stop's read-outs (height's dz among them) from that run; speed and the holds from probes=."""
     from vlactl.rollout.constraints import parse_constraint
-    from vlactl.rollout.runner import steering
+    from vlactl.rollout.plan import steering
     from vlactl.steering.probe_file import load_probe
     from vlactl.steering.train_probes import probe_filename
 
@@ -377,7 +377,7 @@ def test_bad_constraint_lists_on_the_command_line_are_one_line(tmp_path, constra
 def test_a_held_gripper_is_kept_on_the_action_while_speed_is_pushed(probes):
     from vlactl.rollout.constrained import ConstrainedAgent
     from vlactl.rollout.constraints import parse_constraint
-    from vlactl.rollout.runner import steering
+    from vlactl.rollout.plan import steering
     from vlactl.steering.steer import Constraint as ProbeBox
 
     cfg = rollout_config(["model=random", "constraint=speed=low", "method=control", f"probes={probes}",

@@ -16,7 +16,8 @@ from vlactl.env.features import ACTION_FEATURES
 from vlactl.errors import UsageError
 from vlactl.models.registry import tiny_policy
 from vlactl.rollout.constraints import parse_constraint
-from vlactl.rollout.runner import _steered_layers, rollout_config, steering
+from vlactl.rollout.plan import _steered_layers, steering
+from vlactl.rollout.runner import rollout_config
 from vlactl.steering.collect import frame_batch, model_frames, spread
 from vlactl.steering.controllability import run_controllability
 from vlactl.steering.probe_file import load_probe, save_probe

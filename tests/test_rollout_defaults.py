@@ -6,7 +6,8 @@ import json
 import pytest
 
 from vlactl.errors import UsageError
-from vlactl.rollout.runner import SHIPPED_PROBES, demo_constant, probes_run, resolved_method, rollout_config, run_rollout
+from vlactl.rollout.plan import SHIPPED_PROBES, demo_constant, probes_run
+from vlactl.rollout.runner import resolved_method, rollout_config, run_rollout
 
 
 def test_a_constraint_alone_means_the_controller_on_the_embedded_hybrid():
