@@ -125,3 +125,45 @@ def test_registry_model_with_images_and_video(tmp_path):
     assert summary["policy"]["needs_images"] and summary["episodes"] == 1
     video = iio.imread(tmp_path / "random_libero_spatial" / "videos" / "task00_ep0000.mp4", plugin="pyav")
     assert video.shape == (4, 128, 256, 3)  # the reset observation and one per step; agent view | wrist
+
+
+def test_temporal_ensemble_averages_every_chunk_covering_a_step():
+    """ensemble=0 (uniform weights): step t executes the mean of what chunks t-2..t predicted for it."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from vlactl.rollout.agents import VLAAgent
+
+    class Counting:  # the n-th chunk (from 1) predicts n + 10 i for its i-th action
+        chunk_size = replan_every = 3
+        needs_images, gripper_levels = False, None
+
+        def eval(self):
+            return self
+
+        def reset(self, seed):
+            self.n = 0
+
+        def predict_action_chunk(self, batch):
+            self.n += 1
+            return torch.tensor([[[self.n + 10.0 * i] * 7 for i in range(3)]])
+
+    agent = VLAAgent(Counting(), snap_gripper=False, ensemble=0.0)
+    obs = SimpleNamespace(images={}, libero_state=np.zeros(8))
+    agent.reset(SimpleNamespace(instruction="x"), obs)
+    executed = [agent.act(obs)[0] for _ in range(4)]
+    assert executed == pytest.approx([1, (11 + 2) / 2, (21 + 12 + 3) / 3, (22 + 13 + 4) / 3])
+    assert agent.replan_every == 1
+    with pytest.raises(UsageError, match="replan_every=2"):
+        VLAAgent(Counting(), replan_every=2, ensemble=0.01)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["constraint=gripper=open", "method=control"], "method none, prompt or filter"),
+    (["model=scripted"], "model=scripted"),
+    (["ensemble=abc"], "ensemble must be a number"),
+])
+def test_ensemble_bad_input(args, needle, tmp_path):
+    with pytest.raises(UsageError, match=needle):
+        run_rollout(_cfg(tmp_path, "ensemble=0.01", *args), load_policy=fixture_policy.load)

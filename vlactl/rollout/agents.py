@@ -18,16 +18,27 @@ SCRIPTED = "scripted"
 
 class VLAAgent:
     """Runs a `VLA`: predicts a chunk, executes its first `replan_every` actions, then predicts again. With
-    `snap_gripper`, each gripper command becomes the nearest of the policy's `gripper_levels` (if it declares any)."""
+    `snap_gripper`, each gripper command becomes the nearest of the policy's `gripper_levels` (if it declares any).
+    With `ensemble` (ACT's temporal ensembling, LeRobot's `ACTTemporalEnsembler`): a chunk every step, each step
+    executing the average of what every chunk still covering it predicted for it, weighted exp(-ensemble * i) from
+    the oldest (i = 0)."""
 
-    def __init__(self, vla, replan_every: int | None = None, snap_gripper: bool = True):
+    def __init__(self, vla, replan_every: int | None = None, snap_gripper: bool = True,
+                 ensemble: float | None = None):
         self.vla = vla.eval()
         self.chunk_size = int(vla.chunk_size)
-        self.replan_every = int(replan_every or vla.replan_every)
+        if ensemble is not None and replan_every not in (None, 1):
+            raise UsageError(f"ensemble={ensemble} predicts a chunk every step; drop replan_every={replan_every}")
+        self.replan_every = 1 if ensemble is not None else int(replan_every or vla.replan_every)
         if not 1 <= self.replan_every <= self.chunk_size:
             raise UsageError(
                 f"replan_every must be in 1..{self.chunk_size} (the model's chunk size), got {self.replan_every}"
             )
+        self._ensembler = None
+        if ensemble is not None:
+            from lerobot.policies.act.modeling_act import ACTTemporalEnsembler
+
+            self._ensembler = ACTTemporalEnsembler(float(ensemble), self.chunk_size)
         self.needs_images = bool(vla.needs_images)
         levels = vla.gripper_levels if snap_gripper else None
         self.gripper_levels = np.asarray(levels) if levels else None
@@ -39,14 +50,22 @@ class VLAAgent:
         self.vla.reset(seed)
         self._queue = []
         self._instruction = env.instruction
+        if self._ensembler is not None:
+            self._ensembler.reset()
 
     def act(self, obs) -> np.ndarray:
+        if self._ensembler is not None:
+            import torch
+
+            chunk = torch.as_tensor(self.predict(obs, self.chunk_size))[None]
+            return self.snap(self._ensembler.update(chunk).numpy())[0]
         if not self._queue:
             self._queue = list(self.snap(self.predict(obs)))
         return self._queue.pop(0)
 
-    def predict(self, obs) -> np.ndarray:
-        """The next `replan_every` actions [k, 7] as the model predicts them (gripper not snapped)."""
+    def predict(self, obs, actions: int | None = None) -> np.ndarray:
+        """The next `actions` (default `replan_every`) actions [k, 7] as the model predicts them (gripper not
+        snapped)."""
         import torch
 
         from vlactl.models.base import PolicyInput
@@ -58,7 +77,7 @@ class VLAAgent:
         )
         with torch.inference_mode():
             chunk = self.vla.predict_action_chunk(batch)
-        return chunk[0, : self.replan_every].float().cpu().numpy()
+        return chunk[0, : actions or self.replan_every].float().cpu().numpy()
 
     def snap(self, actions: np.ndarray) -> np.ndarray:
         if self.gripper_levels is not None:
@@ -87,7 +106,8 @@ class ScriptedAgent:
 
 
 def load_agent(
-    model: str, replan_every: int | None = None, load_policy: Callable | None = None, snap_gripper: bool = True
+    model: str, replan_every: int | None = None, load_policy: Callable | None = None, snap_gripper: bool = True,
+    ensemble: float | None = None,
 ):
     """`scripted`, or a registry name / checkpoint path resolved by `load_policy` (the model registry by default)."""
     if model == SCRIPTED:
@@ -98,4 +118,4 @@ def load_agent(
         policy = load_policy(model)
     except UsageError as exc:  # the registry lists its own models; a rollout also takes the expert
         raise UsageError(f"{exc}, or {SCRIPTED}" if str(exc).startswith("unknown model") else str(exc)) from None
-    return VLAAgent(policy, replan_every, snap_gripper)
+    return VLAAgent(policy, replan_every, snap_gripper, ensemble)

@@ -33,14 +33,14 @@ from vlactl.rollout.workers import Batch, RunSpec, init_worker, run_batch
 SAME_RUN_KEYS = ("model", "model_inference", "suite", "seed", "max_steps", "replan_every", "snap_gripper", "env",
                  "constraint", "window", "method", "start_gripper", "hold", "hold_tolerance", "barrier_decay", "perturb",
                  "perturb_start", "perturb_steps", "perturb_size", "box", "passes", "height_margin", "pause",
-                 "episode_noise", "speed_margin")
+                 "episode_noise", "speed_margin", "ensemble")
 JUDGED_METHODS = ("none", "prompt")  # what judge_from can stand in for
 # what runs saved before a key existed did
 BEFORE_KEY = {"start_gripper": "open", "hold": [], "hold_tolerance": 0.0, "snap_gripper": False, "barrier_decay": 0.5,
               "perturb": "none", "perturb_start": 0, "perturb_steps": 15, "perturb_size": None,
               "box": "state", "passes": 3, "height_margin": 0.0, "pause": False, "episode_noise": False,
               "model_inference": None,  # None: not recorded, not compared (runs before 2026-12-02 evening)
-              "speed_margin": 0.1}
+              "speed_margin": 0.1, "ensemble": None}
 
 
 def rollout_config(overrides: list[str] | None = None) -> DictConfig:
@@ -86,6 +86,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
     constraint = canonical_constraint(cfg)  # the run's constraints, one or several
     check_choice("start_gripper", cfg.start_gripper, START_GRIPPER)
     resolve_defaults(cfg)
+    ensemble = _ensemble(cfg)
     plan = steering(cfg, constraint)
     perturbation = parse_perturbation(cfg.perturb, cfg.perturb_start, cfg.perturb_steps, cfg.perturb_size, cfg.max_steps)
     cfg.start_gripper = gripper = start_gripper(cfg.start_gripper, constraint, cfg.method)  # saved resolved
@@ -102,7 +103,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 
         agent = served_agent(cfg)
     else:
-        agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper))
+        agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper), ensemble)
     from vlactl.render_presets import warn_if_rendered_otherwise
     warn_if_rendered_otherwise(str(cfg.model), getattr(agent, "vla", None), env)
     for probe in plan.probes + plan.holds:  # here, not in a worker after its start-up; rollouts steer at "prefix"
@@ -129,7 +130,7 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         replan_every=cfg.replan_every, snap_gripper=bool(cfg.snap_gripper), video=bool(cfg.video),
         env=env, load_policy=load_policy, constraint=str(cfg.constraint),
         window=cfg.window, steering=plan, start_gripper=gripper, perturbation=perturbation, policy=cfg.policy,
-        episode_noise=bool(cfg.episode_noise),
+        episode_noise=bool(cfg.episode_noise), ensemble=ensemble,
     )
     if source is not None:
         judge_run(cfg, constraint, plan, todo, where, source)
@@ -152,6 +153,22 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         except shards.Incomplete as exc:
             print(f"not merged yet: {exc}")
     return summary
+
+
+def _ensemble(cfg: DictConfig) -> float | None:
+    """`ensemble=`: temporal ensembling averages the actions the policy predicted; a push or a policy server acts on
+    one chunk a re-plan, the scripted expert has none."""
+    if cfg.ensemble is None:
+        return None
+    if cfg.method not in ("none", "prompt", "filter"):
+        raise UsageError(f"ensemble={cfg.ensemble} goes with method none, prompt or filter, not {cfg.method}")
+    if cfg.policy or str(cfg.model) == SCRIPTED:
+        what = f"policy={cfg.policy}" if cfg.policy else f"model={SCRIPTED}"
+        raise UsageError(f"ensemble={cfg.ensemble} needs a model the workers load, not {what}")
+    try:
+        return float(cfg.ensemble)
+    except ValueError:
+        raise UsageError(f"ensemble must be a number (ACT's coefficient, e.g. 0.01) or null, got {cfg.ensemble!r}") from None
 
 
 def episode_keys(cfg: DictConfig, tasks: list[int]) -> list[tuple[int, int]]:

@@ -39,6 +39,7 @@ class RunSpec:
     perturbation: Perturbation | None = None
     policy: str | None = None  # ws://HOST:PORT: the model runs in a `vlactl serve` process (vlactl.serve)
     episode_noise: bool = True  # each episode's sampling noise restarts from its own seed, not the model's one
+    ensemble: float | None = None  # temporal ensembling's coefficient (VLAAgent); None: chunks as predicted
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ def _agent():
                                  _SPEC.snap_gripper) if steered else None
             _AGENT = RemoteAgent(_SPEC.policy, _SPEC.replan_every, _SPEC.snap_gripper, steer)
             return _AGENT
-        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy, _SPEC.snap_gripper)
+        _AGENT = load_agent(_SPEC.model, _SPEC.replan_every, _SPEC.load_policy, _SPEC.snap_gripper, _SPEC.ensemble)
         if steered:
             _AGENT = ConstrainedAgent(
                 _AGENT.vla, constraint, _SPEC.steering, _SPEC.replan_every, _SPEC.snap_gripper
