@@ -23,7 +23,7 @@ from vlactl.errors import UsageError, check_choice, check_non_negative, check_po
 from vlactl.io import atomic_write_json, atomic_write_parquet, ensure_writable_dir, folder_name
 from vlactl.rollout import parts, shards
 from vlactl.rollout.agents import SCRIPTED, load_agent
-from vlactl.rollout.constrained import Steering, method_label
+from vlactl.rollout.constrained import STEERING, Steering, method_label
 from vlactl.rollout.constraints import START_GRIPPER, constraint_name, parse_constraints, start_gripper
 from vlactl.rollout.plan import controls_actions, steered_features, steering
 from vlactl.rollout.summary import format_summary, summarise_file
@@ -157,10 +157,10 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
 
 def _ensemble(cfg: DictConfig) -> float | None:
     """`ensemble=`: temporal ensembling averages the actions the policy predicted; a push or a policy server acts on
-    one chunk a re-plan, the scripted expert has none."""
+    one chunk a re-plan, the scripted expert has none. An unknown method is left to `steering`'s check."""
     if cfg.ensemble is None:
         return None
-    if cfg.method not in ("none", "prompt", "filter"):
+    if cfg.method in STEERING:  # a push acts on one chunk a re-plan
         raise UsageError(f"ensemble={cfg.ensemble} goes with method none, prompt or filter, not {cfg.method}")
     if cfg.policy or str(cfg.model) == SCRIPTED:
         what = f"policy={cfg.policy}" if cfg.policy else f"model={SCRIPTED}"
@@ -168,7 +168,8 @@ def _ensemble(cfg: DictConfig) -> float | None:
     try:
         return float(cfg.ensemble)
     except ValueError:
-        raise UsageError(f"ensemble must be a number (ACT's coefficient, e.g. 0.01) or null, got {cfg.ensemble!r}") from None
+        raise UsageError(f"ensemble must be a number (ACT's coefficient, e.g. 0.01) or null, "
+                         f"got {cfg.ensemble!r}") from None
 
 
 def episode_keys(cfg: DictConfig, tasks: list[int]) -> list[tuple[int, int]]:
