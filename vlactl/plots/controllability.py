@@ -15,8 +15,7 @@ import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from vlactl.config import stage_output
-from vlactl.errors import UsageError
-from vlactl.plots.files import check_formats, plt, save_figure
+from vlactl.plots.files import plotted_run, plt, save_figure
 from vlactl.steering.controllability import CONTROLLABILITY_NAME
 
 
@@ -56,11 +55,9 @@ def figure_controllability(tables: list[tuple[str, pd.DataFrame]]):
 
 
 def run_plot_controllability(cfg: DictConfig) -> list[Path]:
-    if cfg.run_dir is None:
-        raise UsageError("which controllability run? pass run_dir=<folder written by `vlactl controllability`>")
-    check_formats(cfg.formats)
-    runs = [stage_output(path, CONTROLLABILITY_NAME, "controllability run", "vlactl controllability")
-            for path in (cfg.run_dir, cfg.compare) if path is not None]
+    runs = [plotted_run(cfg, CONTROLLABILITY_NAME, "controllability run", "vlactl controllability")]
+    if cfg.compare is not None:
+        runs.append(stage_output(cfg.compare, CONTROLLABILITY_NAME, "controllability run", "vlactl controllability"))
     fig = figure_controllability([(_title(run), pd.read_parquet(run / CONTROLLABILITY_NAME)) for run in runs])
     written = save_figure(fig, runs[0] / "figures", "controllability", cfg.formats, cfg.dpi)
     print(f"wrote {len(written)} files under {runs[0] / 'figures'}", file=sys.stderr)

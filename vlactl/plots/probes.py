@@ -19,9 +19,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
-from vlactl.config import stage_output  # noqa: E402
-from vlactl.errors import UsageError  # noqa: E402
-from vlactl.plots.files import check_formats, save_figure  # noqa: E402
+from vlactl.plots.files import plotted_run, save_figure  # noqa: E402
 from vlactl.steering.probes import LOGISTIC, REGRESSION  # noqa: E402
 from vlactl.steering.train_probes import METRICS_NAME, best_layers  # noqa: E402
 
@@ -141,10 +139,7 @@ def figure_robustness(table: pd.DataFrame):
 
 
 def run_plot_probes(cfg: DictConfig) -> list[Path]:
-    if cfg.run_dir is None:
-        raise UsageError("which probe run? pass run_dir=<folder written by `vlactl train-probes`>")
-    check_formats(cfg.formats)
-    run = stage_output(cfg.run_dir, METRICS_NAME, "probe run", "vlactl train-probes")
+    run = plotted_run(cfg, METRICS_NAME, "probe run", "vlactl train-probes")
     table = pd.read_parquet(run / METRICS_NAME)
     out = run / "figures"
     written = save_figure(figure_best(table), out, "fig1_best_layer", cfg.formats, cfg.dpi)

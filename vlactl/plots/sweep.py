@@ -8,9 +8,7 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import DictConfig
 
-from vlactl.config import stage_output
-from vlactl.errors import UsageError
-from vlactl.plots.files import check_formats, plt, save_figure
+from vlactl.plots.files import plotted_run, plt, save_figure
 from vlactl.steering.sweep import NORMS_NAME, SWEEP_NAME
 
 PANELS = [("d_dyaw", "mean change of predicted Δyaw"), ("d_gripper_action", "mean change of predicted gripper action")]
@@ -40,10 +38,7 @@ def figure_sweep(sweep: pd.DataFrame, norms: pd.DataFrame):
 
 
 def run_plot_sweep(cfg: DictConfig) -> list[Path]:
-    if cfg.run_dir is None:
-        raise UsageError("which sweep run? pass run_dir=<folder written by `vlactl sweep`>")
-    check_formats(cfg.formats)
-    run = stage_output(cfg.run_dir, SWEEP_NAME, "sweep run", "vlactl sweep")
+    run = plotted_run(cfg, SWEEP_NAME, "sweep run", "vlactl sweep")
     fig = figure_sweep(pd.read_parquet(run / SWEEP_NAME), pd.read_parquet(run / NORMS_NAME))
     written = save_figure(fig, run / "figures", "fig2_sweep", cfg.formats, cfg.dpi)
     print(f"wrote {len(written)} files under {run / 'figures'}", file=sys.stderr)
