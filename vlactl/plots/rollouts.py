@@ -8,7 +8,8 @@
   success rate per method with a one-standard-deviation ellipse over tasks; hollow markers of decreasing size, so a
   method on top of another stays visible (Figs. 6, 8);
 - `summary.md`: success (with its 95% Wilson interval) and satisfaction per constraint and method, the unconstrained
-  run included.
+  run included; runs with other seeds pooled, each set's successes listed, and the success against the unconstrained
+  episodes that start the same way.
 
 A run under several constraints (`height=high,speed=low`) is drawn in the panel of each of its constraints, judged by
 that constraint alone (its `_<feature>` columns), as the method `control [height=high,speed=low]`; summary.md gives
@@ -162,20 +163,39 @@ def figure_success_vs_satisfaction(episodes: pd.DataFrame):
 
 
 def summary_table(folders: list[Path]) -> str:
-    """Markdown: success and satisfaction per constraint and method, over every run (the unconstrained one too)."""
+    """Markdown: success and satisfaction per constraint and method, over every run (the unconstrained one too).
+    Runs of one constraint and method with other seeds pool into one row, each set's successes listed (a set: the
+    episodes of one run's `seed=`); `× unconstrained` compares with the unconstrained episodes among the runs that
+    start the same way (task, episode, set), where every episode of the row has its unconstrained twin."""
     episodes = pd.concat([pd.read_parquet(f / "episodes.parquet") for f in folders], ignore_index=True)
     if "satisfaction" not in episodes:
         episodes["satisfaction"] = np.nan
-    rows = ["| constraint | method | episodes | success (95% CI) | satisfaction |", "|---|---|---|---|---|"]
+    episodes["set"] = episodes["seed"] - episodes["episode"] if "seed" in episodes else 0
+    keys = ["task_id", "episode", "set"]
+    free = episodes[episodes["constraint"] == "none"].drop_duplicates(keys).set_index(keys)["success"]
+    rows = ["| constraint | method | episodes | success (95% CI) | per set | × unconstrained | satisfaction |",
+            "|---|---|---|---|---|---|---|"]
     for (constraint, method), group in episodes.groupby(["constraint", "method"], sort=True):
         sat = group["satisfaction"].mean()
         low, high = success_interval(int(group["success"].sum()), len(group))
         names = constraint.split(",") if "," in constraint else []  # several: each constraint's own too
         each = [f"{name} {100 * group['satisfaction_' + name.partition('=')[0]].mean():.0f}%" for name in names]
         shown = "–" if np.isnan(sat) else f"{100 * sat:.0f}%" + (f" ({', '.join(each)})" if each else "")
+        sets = group.groupby("set")["success"].agg(["sum", "size"])
+        per_set = "–" if len(sets) < 2 else ", ".join(f"{k}: {int(r['sum'])}/{int(r['size'])}" for k, r in sets.iterrows())
         rows.append(f"| {constraint} | {method} | {len(group)} | {100 * group['success'].mean():.0f}% "
-                    f"({100 * low:.0f}–{100 * high:.0f}%) | {shown} |")
+                    f"({100 * low:.0f}–{100 * high:.0f}%) | {per_set} | {_against(group, free, keys, constraint)} | "
+                    f"{shown} |")
     return "\n".join(rows) + "\n"
+
+
+def _against(group: pd.DataFrame, free: pd.Series, keys: list[str], constraint: str) -> str:
+    """`0.969 × (341/352)`: the row's successes over those of its unconstrained twins, or – where some have none."""
+    twins = free.reindex(pd.MultiIndex.from_frame(group[keys]))
+    if constraint == "none" or twins.isna().any() or not twins.sum():
+        return "–"
+    successes, base = int(group["success"].sum()), int(twins.sum())
+    return f"{successes / base:.3f} × ({successes}/{base})"
 
 
 def run_plot_rollouts(cfg: DictConfig) -> list[Path]:
