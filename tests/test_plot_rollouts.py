@@ -102,12 +102,13 @@ def test_a_run_under_two_constraints_is_drawn_in_each_panel_under_its_full_name(
     assert "| height=high,speed=low | control | 6 |" in table and "| 25% (height=high 50%, speed=low 75%) |" in table
 
 
-def _set_of_runs(root, constraint, method, seed, successes):
+def _set_of_runs(root, constraint, method, seed, successes, perturbation="none"):
     """A run of 2 tasks x 2 episodes started with `seed=` (episode k: seed + k), its successes in task-major order."""
-    out = root / f"{constraint}_{method}_seed{seed}"
+    out = root / f"{constraint}_{method}_{perturbation}_seed{seed}"
     out.mkdir(parents=True)
     rows = [{"task_id": t, "episode": k, "seed": seed + k, "success": bool(successes[2 * t + k]),
-             "constraint": constraint, "method": method, "satisfaction": 1.0} for t in range(2) for k in range(2)]
+             "constraint": constraint, "method": method, "satisfaction": 1.0, "perturbation": perturbation}
+            for t in range(2) for k in range(2)]
     pd.DataFrame(rows).to_parquet(out / "episodes.parquet")
     return out
 
@@ -115,7 +116,8 @@ def _set_of_runs(root, constraint, method, seed, successes):
 def test_summary_pools_sets_and_compares_with_their_unconstrained_twins(tmp_path):
     from vlactl.plots.rollouts import summary_table
 
-    runs = [_set_of_runs(tmp_path, "none", "none", 0, [1, 1, 1, 0]),
+    runs = [_set_of_runs(tmp_path, "none", "none", 0, [0, 0, 0, 0], perturbation="raise"),  # first: never a twin
+            _set_of_runs(tmp_path, "none", "none", 0, [1, 1, 1, 0]),
             _set_of_runs(tmp_path, "none", "none", 1000, [1, 1, 1, 1]),
             _set_of_runs(tmp_path, "height=high", "control+pause", 0, [1, 0, 1, 0]),
             _set_of_runs(tmp_path, "height=high", "control+pause", 1000, [1, 1, 0, 1]),
@@ -124,4 +126,5 @@ def test_summary_pools_sets_and_compares_with_their_unconstrained_twins(tmp_path
     row = next(r for r in table if r.startswith("| height=high | control+pause |"))
     assert "| 8 | 62% (" in row and "| 0: 2/4, 1000: 3/4 | 0.714 × (5/7) |" in row
     assert next(r for r in table if r.startswith("| speed=low |")).endswith("| – | – | 100% |")
-    assert next(r for r in table if r.startswith("| none |")).count("| – |") == 1  # its sets listed, no ratio to itself
+    assert next(r for r in table if r.startswith("| none | none |")).count("| – |") == 1  # sets listed, no ratio to itself
+    assert "| none | none, perturb=raise | 4 | 0% (" in "\n".join(table)  # a row of its own

@@ -9,7 +9,7 @@
   method on top of another stays visible (Figs. 6, 8);
 - `summary.md`: success (with its 95% Wilson interval) and satisfaction per constraint and method, the unconstrained
   run included; runs with other seeds pooled, each set's successes listed, and the success against the unconstrained
-  episodes that start the same way.
+  episodes that start the same way (a perturbed run a row of its own).
 
 A run under several constraints (`height=high,speed=low`) is drawn in the panel of each of its constraints, judged by
 that constraint alone (its `_<feature>` columns), as the method `control [height=high,speed=low]`; summary.md gives
@@ -171,8 +171,12 @@ def summary_table(folders: list[Path]) -> str:
     if "satisfaction" not in episodes:
         episodes["satisfaction"] = np.nan
     episodes["set"] = episodes["seed"] - episodes["episode"] if "seed" in episodes else 0
+    if "perturbation" in episodes:  # a perturbed run is its own row, never an unconstrained twin
+        taken = episodes["perturbation"] != "none"
+        episodes.loc[taken, "method"] += ", perturb=" + episodes.loc[taken, "perturbation"]
     keys = ["task_id", "episode", "set"]
-    free = episodes[episodes["constraint"] == "none"].drop_duplicates(keys).set_index(keys)["success"]
+    free = episodes[episodes["method"] == "none"]
+    free = free[free["constraint"] == "none"].drop_duplicates(keys).set_index(keys)["success"]
     rows = ["| constraint | method | episodes | success (95% CI) | per set | × unconstrained | satisfaction |",
             "|---|---|---|---|---|---|---|"]
     for (constraint, method), group in episodes.groupby(["constraint", "method"], sort=True):
