@@ -102,12 +102,13 @@ def test_a_run_under_two_constraints_is_drawn_in_each_panel_under_its_full_name(
     assert "| height=high,speed=low | control | 6 |" in table and "| 25% (height=high 50%, speed=low 75%) |" in table
 
 
-def _set_of_runs(root, constraint, method, seed, successes, perturbation="none"):
+def _set_of_runs(root, constraint, method, seed, successes, perturbation="none", model="hybrid"):
     """A run of 2 tasks x 2 episodes started with `seed=` (episode k: seed + k), its successes in task-major order."""
-    out = root / f"{constraint}_{method}_{perturbation}_seed{seed}"
+    out = root / f"{model}_{constraint}_{method}_{perturbation}_seed{seed}"
     out.mkdir(parents=True)
     rows = [{"task_id": t, "episode": k, "seed": seed + k, "success": bool(successes[2 * t + k]),
-             "constraint": constraint, "method": method, "satisfaction": 1.0, "perturbation": perturbation}
+             "constraint": constraint, "method": method, "satisfaction": 1.0, "perturbation": perturbation,
+             "model": model}
             for t in range(2) for k in range(2)]
     pd.DataFrame(rows).to_parquet(out / "episodes.parquet")
     return out
@@ -128,3 +129,14 @@ def test_summary_pools_sets_and_compares_with_their_unconstrained_twins(tmp_path
     assert next(r for r in table if r.startswith("| speed=low |")).endswith("| – | – | 100% |")
     assert next(r for r in table if r.startswith("| none | none |")).count("| – |") == 1  # sets listed, no ratio to itself
     assert "| none | none, perturb=raise | 4 | 0% (" in "\n".join(table)  # a row of its own
+
+
+def test_summary_keeps_each_models_rows_and_twins_apart(tmp_path):
+    from vlactl.plots.rollouts import summary_table
+
+    runs = [_set_of_runs(tmp_path, "none", "none", 0, [0, 0, 0, 1], model="autoregressive"),  # first: not a twin
+            _set_of_runs(tmp_path, "none", "none", 0, [1, 1, 1, 1]),
+            _set_of_runs(tmp_path, "gripper=open", "control", 0, [1, 1, 1, 0])]
+    table = summary_table(runs)
+    assert "| none | autoregressive: none | 4 | 25% (" in table and "| none | hybrid: none | 4 | 100% (" in table
+    assert "| gripper=open | hybrid: control | 4 | 75% (" in table and "| 0.750 × (3/4) |" in table

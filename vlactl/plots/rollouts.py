@@ -166,17 +166,22 @@ def summary_table(folders: list[Path]) -> str:
     """Markdown: success and satisfaction per constraint and method, over every run (the unconstrained one too).
     Runs of one constraint and method with other seeds pool into one row, each set's successes listed (a set: the
     episodes of one run's `seed=`); `× unconstrained` compares with the unconstrained episodes among the runs that
-    start the same way (task, episode, set), where every episode of the row has its unconstrained twin."""
+    start the same way (model, task, episode, set), where every episode of the row has its unconstrained twin."""
     episodes = pd.concat([pd.read_parquet(f / "episodes.parquet") for f in folders], ignore_index=True)
     if "satisfaction" not in episodes:
         episodes["satisfaction"] = np.nan
     episodes["set"] = episodes["seed"] - episodes["episode"] if "seed" in episodes else 0
+    plain = (episodes["constraint"] == "none") & (episodes["method"] == "none")
     if "perturbation" in episodes:  # a perturbed run is its own row, never an unconstrained twin
         taken = episodes["perturbation"] != "none"
+        plain &= ~taken
         episodes.loc[taken, "method"] += ", perturb=" + episodes.loc[taken, "perturbation"]
     keys = ["task_id", "episode", "set"]
-    free = episodes[episodes["method"] == "none"]
-    free = free[free["constraint"] == "none"].drop_duplicates(keys).set_index(keys)["success"]
+    if "model" in episodes:  # twins of the same model; with several models, each its own rows
+        keys.append("model")
+        if episodes["model"].nunique() > 1:
+            episodes["method"] = episodes["model"] + ": " + episodes["method"]
+    free = episodes[plain].drop_duplicates(keys).set_index(keys)["success"]
     rows = ["| constraint | method | episodes | success (95% CI) | per set | × unconstrained | satisfaction |",
             "|---|---|---|---|---|---|---|"]
     for (constraint, method), group in episodes.groupby(["constraint", "method"], sort=True):
