@@ -129,6 +129,7 @@ def test_summary_pools_sets_and_compares_with_their_unconstrained_twins(tmp_path
     assert next(r for r in table if r.startswith("| speed=low |")).endswith("| – | – | 100% |")
     assert next(r for r in table if r.startswith("| none | none |")).count("| – |") == 1  # sets listed, no ratio to itself
     assert "| none | none, perturb=raise | 4 | 0% (" in "\n".join(table)  # a row of its own
+    assert next(r for r in table if "perturb=raise" in r).endswith("| – | 0.000 × (0/3) | 100% |")  # vs unperturbed
 
 
 def test_summary_keeps_each_models_rows_and_twins_apart(tmp_path):

@@ -55,9 +55,8 @@ def figure_controllability(tables: list[tuple[str, pd.DataFrame]]):
 
 
 def run_plot_controllability(cfg: DictConfig) -> list[Path]:
-    runs = [plotted_run(cfg, CONTROLLABILITY_NAME, "controllability run", "vlactl controllability")]
-    if cfg.compare is not None:
-        runs.append(stage_output(cfg.compare, CONTROLLABILITY_NAME, "controllability run", "vlactl controllability"))
+    stage = (CONTROLLABILITY_NAME, "controllability run", "vlactl controllability")
+    runs = [plotted_run(cfg, *stage)] + ([] if cfg.compare is None else [stage_output(cfg.compare, *stage)])
     fig = figure_controllability([(_title(run), pd.read_parquet(run / CONTROLLABILITY_NAME)) for run in runs])
     written = save_figure(fig, runs[0] / "figures", "controllability", cfg.formats, cfg.dpi)
     print(f"wrote {len(written)} files under {runs[0] / 'figures'}", file=sys.stderr)

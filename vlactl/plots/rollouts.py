@@ -9,7 +9,7 @@
   method on top of another stays visible (Figs. 6, 8);
 - `summary.md`: success (with its 95% Wilson interval) and satisfaction per constraint and method, the unconstrained
   run included; runs with other seeds pooled, each set's successes listed, and the success against the unconstrained
-  episodes that start the same way (a perturbed run a row of its own).
+  episodes that start the same way (a perturbed run a row of its own, against the unperturbed episodes).
 
 A run under several constraints (`height=high,speed=low`) is drawn in the panel of each of its constraints, judged by
 that constraint alone (its `_<feature>` columns), as the method `control [height=high,speed=low]`; summary.md gives
@@ -191,17 +191,18 @@ def summary_table(folders: list[Path]) -> str:
         each = [f"{name} {100 * group['satisfaction_' + name.partition('=')[0]].mean():.0f}%" for name in names]
         shown = "–" if np.isnan(sat) else f"{100 * sat:.0f}%" + (f" ({', '.join(each)})" if each else "")
         sets = group.groupby("set")["success"].agg(["sum", "size"])
-        per_set = "–" if len(sets) < 2 else ", ".join(f"{k}: {int(r['sum'])}/{int(r['size'])}" for k, r in sets.iterrows())
+        per_set = ", ".join(f"{k}: {int(r['sum'])}/{int(r['size'])}" for k, r in sets.iterrows())
+        per_set = per_set if len(sets) > 1 else "–"
+        against = "–" if plain[group.index].all() else _against(group, free, keys)  # the twins themselves: no ratio
         rows.append(f"| {constraint} | {method} | {len(group)} | {100 * group['success'].mean():.0f}% "
-                    f"({100 * low:.0f}–{100 * high:.0f}%) | {per_set} | {_against(group, free, keys, constraint)} | "
-                    f"{shown} |")
+                    f"({100 * low:.0f}–{100 * high:.0f}%) | {per_set} | {against} | {shown} |")
     return "\n".join(rows) + "\n"
 
 
-def _against(group: pd.DataFrame, free: pd.Series, keys: list[str], constraint: str) -> str:
+def _against(group: pd.DataFrame, free: pd.Series, keys: list[str]) -> str:
     """`0.969 × (341/352)`: the row's successes over those of its unconstrained twins, or – where some have none."""
     twins = free.reindex(pd.MultiIndex.from_frame(group[keys]))
-    if constraint == "none" or twins.isna().any() or not twins.sum():
+    if twins.isna().any() or not twins.sum():
         return "–"
     successes, base = int(group["success"].sum()), int(twins.sum())
     return f"{successes / base:.3f} × ({successes}/{base})"
