@@ -91,6 +91,20 @@ def test_features_measured_apart_add_up_in_the_probe_run(probe_runs, tmp_path):
     assert set(table[table["feature"] == "z"]["n_targets"]) == {2}
 
 
+def test_the_shipped_probes_table_is_left_as_make_probes_made_it(probe_runs, tmp_path, monkeypatch):
+    from vlactl.steering import controllability
+
+    demos, (source, _) = probe_runs
+    shipped = tmp_path / "data" / "probes"
+    probes = shipped / "hybrid" / "steer"
+    shutil.copytree(source, probes)
+    (probes / "controllability.parquet").unlink(missing_ok=True)
+    monkeypatch.setattr(controllability, "SHIPPED_PROBES", shipped)
+    out = measure(demos, probes, tmp_path / "map", "features=[z]", "groups=false")
+    assert (out / "controllability.parquet").is_file()
+    assert not (probes / "controllability.parquet").exists()  # a rollout's default layers stay the shipped ones
+
+
 def test_gain_has_the_sign_of_the_push(probe_runs, tmp_path):
     """A z probe at expert.1 along the direction that raises the predicted dz: raising its reading raises dz (gain
     > 0); the same probe negated reads the other way, so the same push lowers it (gain < 0). A gripper probe along

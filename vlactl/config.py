@@ -13,6 +13,7 @@ from omegaconf.errors import ConfigAttributeError, OmegaConfBaseException
 from vlactl.errors import UsageError
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe,stop}: `make probes` rebuilds them
 CONF_DIR = Path(os.environ.get("VLACTL_CONF_DIR", REPO_ROOT / "conf"))
 
 

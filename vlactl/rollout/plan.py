@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from omegaconf import DictConfig
 
-from vlactl.config import REPO_ROOT, resolve_path, stage_output
+from vlactl.config import REPO_ROOT, SHIPPED_PROBES, resolve_path, stage_output
 from vlactl.errors import UsageError, check_choice
 from vlactl.rollout.agents import SCRIPTED
 from vlactl.rollout.constrained import METHODS, STEERING, Steering
@@ -22,7 +22,6 @@ from vlactl.rollout.constraints import (BOXES, KINDS, STOP_READOUTS, Bounds, as_
 if TYPE_CHECKING:
     import pandas as pd
 
-SHIPPED_PROBES = REPO_ROOT / "data" / "probes"  # data/probes/<model>/{steer,observe,stop}: `make probes` rebuilds them
 
 
 def steering(cfg: DictConfig, constraint) -> Steering:

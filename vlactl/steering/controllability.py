@@ -29,7 +29,7 @@ import numpy as np
 import pandas as pd
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from vlactl.config import REPO_ROOT, resolve_path, save_config, stage_output
+from vlactl.config import REPO_ROOT, SHIPPED_PROBES, resolve_path, save_config, stage_output
 from vlactl.env.features import ACTION_FEATURES, STATE_FEATURES
 from vlactl.errors import UsageError, check_positive
 from vlactl.io import atomic_write_parquet, ensure_writable_dir
@@ -136,7 +136,9 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
         raise UsageError(f"{cfg.probes!r} has no probes at layers whose output can move the actions")
     out = resolve_path(cfg.output_dir) if cfg.output_dir else default_output(cfg)
     ensure_writable_dir(out, cfg.output_dir)
-    ensure_writable_dir(run, cfg.probes, key="probes")
+    shipped = run.resolve().is_relative_to(SHIPPED_PROBES.resolve())
+    if not shipped:
+        ensure_writable_dir(run, cfg.probes, key="probes")
 
     vla, frames, rows, key = policy_and_frames(cfg, load_policy)
     pooling = str(table["pooling"].iloc[0])
@@ -179,8 +181,12 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
     result["metrics_digest"] = digest
     atomic_write_parquet(out / POINTS_NAME, points)
     atomic_write_parquet(out / CONTROLLABILITY_NAME, result)
-    atomic_write_parquet(run / CONTROLLABILITY_NAME, _merged(run / CONTROLLABILITY_NAME, result))
     save_config(cfg, out)
+    if shipped:  # the shipped table picks every default rollout's layers: only `make probes` rebuilds it
+        print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows); the shipped probes' own table in {run} is "
+              "left as `make probes` made it", file=sys.stderr)
+        return out
+    atomic_write_parquet(run / CONTROLLABILITY_NAME, _merged(run / CONTROLLABILITY_NAME, result))
     print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows) and {run / CONTROLLABILITY_NAME}", file=sys.stderr)
     return out
 
