@@ -97,25 +97,6 @@ def test_none_leaves_the_layer_alone_and_empty_sets_are_skipped():
     assert len(calls) == 1  # the prompt only: decode steps hold no prompt token
 
 
-def test_decode_steps_carry_the_prompts_push_only_when_the_model_says_so():
-    obs = observation()
-    first_decode_step = {}
-    for carry in (False, True):
-        policy = tiny_policy("autoregressive", carry_push=carry)
-        u = torch.linspace(-1, 1, policy.layer_width("backbone.0")).expand(2, -1)
-        calls, outputs = [], []
-        with intervene(policy, ["backbone.0"], lambda name, pooled: calls.append(pooled) or u):
-            handle = policy.layer_module("backbone.0").register_forward_hook(lambda m, a, out: outputs.append(out))
-            try:
-                policy.predict_action_chunk(obs)
-            finally:
-                handle.remove()
-        assert len(calls) == 1  # the push is computed at the prompt alone either way
-        first_decode_step[carry] = next(out for out in outputs if out.shape[1] == 1)
-    # the same prompt and first token in both runs: the decode step differs by the carried push alone
-    assert torch.allclose(first_decode_step[True] - first_decode_step[False], u[:, None, :], atol=1e-5)
-
-
 def test_masked_mean_ignores_masked_tokens():
     hidden = torch.tensor([[[1.0], [3.0], [100.0]]])
     assert masked_mean(hidden, torch.tensor([[True, True, False]])).item() == 2.0

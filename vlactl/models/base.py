@@ -105,13 +105,6 @@ class VLA(ABC):
     def token_mask(self, name: str, pooling: str) -> torch.Tensor:
         """Bool [batch, tokens] of the read-out set for the forward currently running through layer `name`."""
 
-    def carry_mask(self, name: str) -> torch.Tensor | None:
-        """Bool [batch, tokens] of the tokens of the forward now running through layer `name` that continue the last
-        forward whose read-out set was pushed (an autoregressive model's decode steps), or None: there that push is
-        added again, as activation steering of a language model adds its vector at every generated position. By
-        default no forward carries a push."""
-        return None
-
     def layer_width(self, name: str) -> int:
         raise NotImplementedError
 

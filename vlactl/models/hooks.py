@@ -77,25 +77,17 @@ def capture(vla: VLA, layers: list[str], pooling: str = "prefix") -> Iterator[di
 def intervene(vla: VLA, layers: list[str], fn: Intervention, pooling: str = "prefix") -> Iterator[None]:
     """At each forward through a chosen layer, call fn(layer, pooled [B, d]) and add the returned u [B, d] to every
     token of the read-out set, so the pooled reading moves by exactly u. fn returns None to leave the layer alone;
-    it is not called for forwards with an empty token set. Where the model says a forward's tokens carry the last
-    push (`carry_mask`: its decode steps), that forward gets the layer's last u there.
+    it is not called for forwards with an empty token set.
     """
     pool = _Pooling(vla, pooling)
-    last: dict[str, torch.Tensor] = {}
 
     def make_hook(name):
         def hook(hidden):
             pooled = pool(name, hidden)
-            if pooled is not None:
-                u = fn(name, pooled)
-                if u is None:
-                    last.pop(name, None)
-                    return None
-                last[name], mask = u, vla.token_mask(name, pooling)
-            else:
-                u, mask = last.get(name), vla.carry_mask(name)
-                if u is None or mask is None:
-                    return None
+            u = None if pooled is None else fn(name, pooled)
+            if u is None:
+                return None
+            mask = vla.token_mask(name, pooling)
             return hidden + mask.to(hidden.dtype)[..., None] * u.to(hidden.dtype)[:, None, :]
 
         return hook

@@ -77,7 +77,7 @@ class OpenVLAAdapter(StackedLayers):
     env_preset = "standard"  # its LIBERO fine-tunes were trained on LIBERO's own renders (vlactl.render_presets)
 
     def __init__(self, model, processor, norm_stats: dict, unnorm_key: str | None = None, prompt: str = PROMPT,
-                 append_token: int | None = EMPTY_TOKEN, crop: bool = True, carry_push: bool = False):
+                 append_token: int | None = EMPTY_TOKEN, crop: bool = True):
         self.model, self.processor = model.eval(), processor
         keys = sorted(norm_stats)
         if unnorm_key is None and len(keys) == 1:
@@ -86,8 +86,6 @@ class OpenVLAAdapter(StackedLayers):
             raise UsageError(f"model.unnorm_key={unnorm_key!r} is not in the checkpoint; allowed: {', '.join(keys)}")
         self.stats = norm_stats[unnorm_key]["action"]
         self.prompt, self.append_token, self.crop = prompt, append_token, crop
-        self.carry_push = carry_push  # decode steps carry the prompt's push (VLA.carry_mask)
-        self._carry: torch.Tensor | None = None
         text = model.config.text_config
         self.vocab_size = text.vocab_size - int(getattr(model.config, "pad_to_multiple_of", 0) or 0)
         self.device = next(model.parameters()).device
@@ -101,7 +99,7 @@ class OpenVLAAdapter(StackedLayers):
     @classmethod
     def load(cls, checkpoint: str | None = None, unnorm_key: str | None = None, device: str | None = None,
              dtype: str | None = None, prompt: str = PROMPT, append_token: int | None = EMPTY_TOKEN,
-             crop: bool = True, carry_push: bool = False) -> "OpenVLAAdapter":
+             crop: bool = True) -> "OpenVLAAdapter":
         """From a local folder or hub id; bfloat16 on a GPU, float32 on the CPU unless `dtype` says otherwise."""
         from transformers import AutoModelForVision2Seq, AutoProcessor
 
@@ -121,7 +119,7 @@ class OpenVLAAdapter(StackedLayers):
             norm_stats = {**(norm_stats or {}), **json.loads(stats_file.read_text())}
         if not norm_stats:
             raise UsageError(f"openvla checkpoint {checkpoint!r} has no norm_stats or dataset_statistics.json")
-        return cls(model.to(device), processor, norm_stats, unnorm_key, prompt, append_token, crop, carry_push)
+        return cls(model.to(device), processor, norm_stats, unnorm_key, prompt, append_token, crop)
 
     # --- layers -------------------------------------------------------------------------------------------------
     def _decoder(self) -> nn.Module:
@@ -144,9 +142,6 @@ class OpenVLAAdapter(StackedLayers):
         self.layer_module(name)
         return self._masks[pooling]
 
-    def carry_mask(self, name: str) -> torch.Tensor | None:
-        return self._carry
-
     def _count_image_tokens(self, module, args, output) -> None:
         self._image_tokens = output.shape[1]
 
@@ -160,9 +155,7 @@ class OpenVLAAdapter(StackedLayers):
             torch.ones(b, t, dtype=torch.bool, device=device)
         if self._image_tokens is None:  # a decode step: no prompt tokens
             self._masks = dict.fromkeys(POOLINGS, torch.zeros(b, t, dtype=torch.bool, device=device))
-            self._carry = torch.ones(b, t, dtype=torch.bool, device=device) if self.carry_push else None
             return
-        self._carry = None
         self.prompt_passes += 1
         positions = torch.arange(t, device=device)
         image = valid & (positions >= 1) & (positions < 1 + self._image_tokens)

@@ -13,7 +13,7 @@ DECODES = ("argmax", "median")
 
 @dataclass(frozen=True)
 class AutoregressiveConfig(VLAConfig):
-    INFERENCE_OPTIONS = ("decode", "carry_push")
+    INFERENCE_OPTIONS = ("decode",)
     # A short chunk decoded as chunk_size * 7 tokens: the prompt is read once per chunk, and executing a chunk
     # gives smoother motion than one action per query.
     chunk_size: int = 5
@@ -26,10 +26,6 @@ class AutoregressiveConfig(VLAConfig):
     # demonstration frames the median errs less than the mode, and closed loop it succeeds more: docs/models.md) or
     # the most likely one ("argmax", as OpenVLA decodes)
     decode: str = "median"
-    # Whether a push written at the prompt's tokens (steering, sweeps) is added again at every decode step, at the
-    # action token being written, as language-model activation steering adds its vector at each generated position;
-    # otherwise the action tokens feel it only through the prompt's keys and values (docs/steering.md)
-    carry_push: bool = False
 
     def __post_init__(self):
         check_choice("model.prompt_attention", self.prompt_attention, PROMPT_ATTENTIONS)

@@ -28,7 +28,6 @@ class AutoregressivePolicy(EmbeddedPolicy):
         self.backbone = LlamaModel(config.llama_config(vocab_size=self.n_words + config.bins))
         self.prefix = PrefixEmbedder(config, self.backbone.embed_tokens)
         self.head = nn.Linear(config.width, config.bins, bias=False)
-        self._carry: torch.Tensor | None = None  # during decode steps, when pushes carry (config.carry_push)
 
     @property
     def _prefix_lm(self) -> bool:
@@ -36,9 +35,6 @@ class AutoregressivePolicy(EmbeddedPolicy):
 
     def _stacks(self):
         return {"backbone": self.backbone.layers}
-
-    def carry_mask(self, name: str) -> torch.Tensor | None:
-        return self._carry
 
     def _embed_bins(self, ids: torch.Tensor) -> torch.Tensor:
         return self.backbone.embed_tokens(ids + self.n_words)
@@ -75,14 +71,12 @@ class AutoregressivePolicy(EmbeddedPolicy):
         h, cache = self._prefill(inputs)
         b = h.shape[0]
         self._masks["backbone"] = empty_masks(b, 1)  # decode steps hold no prompt token: nothing read or written
-        self._carry = torch.ones(b, 1, dtype=torch.bool) if self.config.carry_push else None
         ids = []
         for k in range(self.config.chunk_size * self.config.action_dim):
             ids.append(self._pick(self.head(h)))
             if k + 1 < self.config.chunk_size * self.config.action_dim:
                 step = self._embed_bins(ids[-1])[:, None]
                 h = self.backbone(inputs_embeds=step, past_key_values=cache, use_cache=True).last_hidden_state[:, -1]
-        self._carry = None
         chunk = torch.stack(ids, 1).view(b, self.config.chunk_size, self.config.action_dim)
         return self.processor.bin_centers(chunk)
 
