@@ -23,7 +23,6 @@ if TYPE_CHECKING:
     import pandas as pd
 
 
-
 def steering(cfg: DictConfig, constraint) -> Steering:
     """The run's intervention: method, and for control/alpha the probes of the constraint's feature at the chosen
     layers (by default the most controllable layer or group, else the best observable layer, of the probe run).

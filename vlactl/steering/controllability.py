@@ -183,11 +183,11 @@ def run_controllability(cfg: DictConfig, load_policy=None) -> Path:
     atomic_write_parquet(out / CONTROLLABILITY_NAME, result)
     save_config(cfg, out)
     if shipped:  # the shipped table picks every default rollout's layers: only `make probes` rebuilds it
-        print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows); the shipped probes' own table in {run} is "
-              "left as `make probes` made it", file=sys.stderr)
-        return out
-    atomic_write_parquet(run / CONTROLLABILITY_NAME, _merged(run / CONTROLLABILITY_NAME, result))
-    print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows) and {run / CONTROLLABILITY_NAME}", file=sys.stderr)
+        also = f"; the shipped probes' own table in {run} is left as `make probes` made it"
+    else:
+        atomic_write_parquet(run / CONTROLLABILITY_NAME, _merged(run / CONTROLLABILITY_NAME, result))
+        also = f" and {run / CONTROLLABILITY_NAME}"
+    print(f"wrote {out / CONTROLLABILITY_NAME} ({len(result)} rows){also}", file=sys.stderr)
     return out
 
 
