@@ -61,6 +61,19 @@ def test_stored_rows_equal_a_direct_capture(demos, tmp_path):
         torch.testing.assert_close(store.load([name])[0, rows], torch.from_numpy(direct[name]), rtol=1e-4, atol=1e-5)
 
 
+def test_the_action_set_reads_the_mean_over_the_written_tokens():
+    """An autoregressive model's `action` reading: its prediction run, one position a forward, averaged."""
+    from synthetic_demos import observation
+
+    from vlactl.models.hooks import capture
+
+    vla, obs = tiny_policy("autoregressive"), observation()
+    with capture(vla, ["backbone.1"], "action") as seen:
+        vla.predict_action_chunk(obs)
+    pooled = pooled_activations(vla, ["backbone.1"], "action", obs)["backbone.1"]
+    torch.testing.assert_close(torch.from_numpy(pooled), torch.stack(seen["backbone.1"]).mean(0))
+
+
 def test_resume_skips_committed_episodes(demos, tmp_path):
     out = tmp_path / "acts"
     collect(demos, out, "max_episodes=1")
@@ -112,6 +125,7 @@ def test_labels_are_derived_for_datasets_without_the_robot_features(demos, tmp_p
     (["dtype=int8"], "dtype"),
     (["every=0"], "every"),
     (["layers=[expert.0]", "pooling=image"], "no tokens in the read-out set 'image'"),
+    (["layers=[backbone.0]", "pooling=action"], "no tokens in the read-out set 'action'"),
 ])
 def test_bad_input_is_a_usage_error(demos, tmp_path, extra, message):
     with pytest.raises(UsageError, match=message):

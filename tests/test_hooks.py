@@ -100,3 +100,38 @@ def test_none_leaves_the_layer_alone_and_empty_sets_are_skipped():
 def test_masked_mean_ignores_masked_tokens():
     hidden = torch.tensor([[[1.0], [3.0], [100.0]]])
     assert masked_mean(hidden, torch.tensor([[True, True, False]])).item() == 2.0
+
+
+def test_the_action_set_is_every_position_that_writes_an_action_token():
+    """Autoregressive: the prompt's last token (it writes the first action token), then each decode step; a hybrid's
+    is its action expert's tokens and nothing in the backbone."""
+    policy = tiny_policy("autoregressive")
+    with capture(policy, ["backbone.0"], "action") as action, capture(policy, ["backbone.0"], "last") as last:
+        policy.encode_for(observation(), "action")
+    assert len(action["backbone.0"]) == policy.chunk_size * 7 and len(last["backbone.0"]) == 1
+    assert torch.equal(action["backbone.0"][0], last["backbone.0"][0])
+    with capture(policy, ["backbone.0"], "action") as prompt_only:
+        policy.encode_for(observation(), "prefix")
+    assert len(prompt_only["backbone.0"]) == 1
+
+    hybrid = tiny_policy("hybrid")
+    with capture(hybrid, ["backbone.0", "expert.0"], "action") as action, \
+            capture(hybrid, ["expert.0"], "prefix") as suffix:
+        hybrid.encode_for(observation(), "action")
+    assert action["backbone.0"] == [] and torch.equal(action["expert.0"][0], suffix["expert.0"][0])
+
+
+def test_a_push_at_the_action_set_is_added_at_every_written_token():
+    policy = tiny_policy("autoregressive")
+    obs = observation()
+    plain = policy.predict_action_chunk(obs)
+    pushed = []
+
+    def push(name, pooled):
+        pushed.append(pooled.shape)
+        return torch.full_like(pooled, 5.0)
+
+    with intervene(policy, ["backbone.0"], push, "action"):
+        steered = policy.predict_action_chunk(obs)
+    assert pushed == [(2, policy.layer_width("backbone.0"))] * (policy.chunk_size * 7)
+    assert not torch.equal(plain, steered)

@@ -59,6 +59,7 @@ def test_autoregressive_decode_steps_hold_no_prompt_token():
     policy.predict_action_chunk(observation())
     for pooling in ("prefix", "image", "text", "last"):
         assert not policy.token_mask("backbone.0", pooling).any()
+    assert policy.token_mask("backbone.0", "action").all()  # each one writes the next action token
 
 
 @pytest.mark.parametrize("name", list(MODELS))

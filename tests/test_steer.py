@@ -97,6 +97,17 @@ def test_probe_of_another_model_or_pooling_is_refused():
     with pytest.raises(UsageError, match="trained on model 'autoregressive'"):
         Steerer(vla, [Constraint(probe(vla, model="autoregressive"))])
     with pytest.raises(UsageError, match="pooling 'last'"):
-        Steerer(vla, [Constraint(probe(vla, pooling="last"))])
+        Steerer(vla, [Constraint(probe(vla, pooling="last"))], pooling="prefix")
+    with pytest.raises(UsageError, match="pooling 'last'"):  # probes of two read-out sets in one push
+        Steerer(vla, [Constraint(probe(vla)), Constraint(probe(vla, layer="backbone.0", pooling="last"))])
+
+
+def test_the_push_goes_where_the_probes_read():
+    """A probe fitted at the `action` set is pushed there: on an autoregressive model, at every written token."""
+    vla = tiny_policy("autoregressive")
+    with Steerer(vla, [Constraint(probe(vla, pooling="action"), 1.0, 1.0)]) as steer:
+        vla.predict_action_chunk(observation())
+    assert steer.pooling == "action" and len(steer.log) == 2 * vla.chunk_size * 7
+    assert all(row["after"] == pytest.approx(1.0) for row in steer.log)
     with pytest.raises(UsageError, match="unknown steering method 'push'"):
         Steerer(vla, [Constraint(probe(vla))], method="push")

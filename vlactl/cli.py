@@ -161,7 +161,7 @@ def collect(
     overrides: Optional[List[str]] = OVERRIDES,
     model: Optional[str] = typer.Option(None, "--model", help="Registry name or checkpoint folder."),
     dataset: Optional[str] = typer.Option(None, "--dataset", help="LeRobot v3 dataset (vlactl demos, or your own)."),
-    pooling: Optional[str] = typer.Option(None, "--pooling", help="prefix, last, image or text."),
+    pooling: Optional[str] = typer.Option(None, "--pooling", help="prefix, last, image, text or action."),
     output_dir: Optional[str] = typer.Option(None, "--output-dir"),
     multirun: bool = MULTIRUN,
 ):

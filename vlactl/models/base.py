@@ -7,7 +7,10 @@ modules; `vlactl.models.hooks` reads and writes those outputs through forward ho
 - `prefix`  mean over the prompt/prefix tokens (images + text + state) — the default (SPEC.md §2);
 - `last`    the last prefix token;
 - `image`   mean over image tokens only;
-- `text`    mean over text tokens only.
+- `text`    mean over text tokens only;
+- `action`  the positions that write the actions: an action expert's action tokens; for a model that writes its
+            actions as decoder tokens (autoregressive), the prompt's last token and each decode step, every position
+            whose output is the next action token. Its reading is the mean over those positions, one per forward.
 
 For an action expert's layers the prefix sets are meaningless; there `prefix` means the action (suffix) tokens.
 A forward pass whose tokens hold none of the set (e.g. an autoregressive decode step under `prefix`) has an
@@ -24,7 +27,7 @@ import numpy as np
 import torch
 from torch.utils.hooks import RemovableHandle
 
-POOLINGS = ("prefix", "last", "image", "text")
+POOLINGS = ("prefix", "last", "image", "text", "action")
 
 
 def episode_noise_seed(base: int, episode: int | None) -> int:
@@ -120,6 +123,16 @@ class VLA(ABC):
         Hybrids run the prefix, then the action expert once at a fixed flow time; autoregressive models run the
         prompt forward (prefill) only.
         """
+
+    def encode_actions(self, obs: PolicyInput) -> None:
+        """`encode`, and where the model writes its actions as decoder tokens the decode steps that write them too,
+        so that the `action` read-out set sees every position it steers in a rollout. By default `encode`: an action
+        expert's tokens are in its one pass. Autoregressive models predict the chunk (one forward per token)."""
+        self.encode(obs)
+
+    def encode_for(self, obs: PolicyInput, pooling: str) -> None:
+        """Run the forwards a read-out set reads: `encode_actions` for `action`, else `encode` (cheaper)."""
+        (self.encode_actions if pooling == "action" else self.encode)(obs)
 
     def reset(self, seed: int | None = None) -> None:
         """Forget any per-episode state (action queues, caches). A model that draws noise restarts it, from

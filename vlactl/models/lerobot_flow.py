@@ -26,13 +26,13 @@ def prefix_masks(pad: torch.Tensor, n_image: int, n_text: int) -> dict[str, torc
     positions = torch.arange(pad.shape[1], device=pad.device)
     image = pad & (positions < n_image)
     text = pad & (positions >= n_image) & (positions < n_image + n_text)
-    return {"prefix": pad, "last": last_true(pad), "image": image, "text": text}
+    return {"prefix": pad, "last": last_true(pad), "image": image, "text": text, "action": torch.zeros_like(pad)}
 
 
 def suffix_masks(pad: torch.Tensor) -> dict[str, torch.Tensor]:
     """The action expert's tokens: `prefix` means all of them (see vlactl.models.base)."""
     none = torch.zeros_like(pad)
-    return {"prefix": pad, "last": last_true(pad), "image": none, "text": none}
+    return {"prefix": pad, "last": last_true(pad), "image": none, "text": none, "action": pad}
 
 
 class LeRobotFlowVLA(StackedLayers):

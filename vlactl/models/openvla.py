@@ -153,13 +153,15 @@ class OpenVLAAdapter(StackedLayers):
         attention = kwargs.get("attention_mask")
         valid = attention[:, -t:].bool() if attention is not None and attention.dim() == 2 else \
             torch.ones(b, t, dtype=torch.bool, device=device)
-        if self._image_tokens is None:  # a decode step: no prompt tokens
-            self._masks = dict.fromkeys(POOLINGS, torch.zeros(b, t, dtype=torch.bool, device=device))
+        if self._image_tokens is None:  # a decode step: no prompt tokens, each one writes the next action token
+            self._masks = {**dict.fromkeys(POOLINGS, torch.zeros(b, t, dtype=torch.bool, device=device)),
+                           "action": valid}
             return
         self.prompt_passes += 1
         positions = torch.arange(t, device=device)
         image = valid & (positions >= 1) & (positions < 1 + self._image_tokens)
-        self._masks = {"prefix": valid, "last": last_true(valid), "image": image, "text": valid & ~image}
+        last = last_true(valid)
+        self._masks = {"prefix": valid, "last": last, "image": image, "text": valid & ~image, "action": last}
         self._image_tokens = None
 
     # --- running ------------------------------------------------------------------------------------------------
@@ -201,3 +203,7 @@ class OpenVLAAdapter(StackedLayers):
     def encode(self, obs: PolicyInput) -> None:
         """The prompt forward only (prefill), batched."""
         self.model(**self._inputs(obs, slice(None)))
+
+    def encode_actions(self, obs: PolicyInput) -> None:
+        """The prediction itself (a prefill and the decode steps, one observation at a time): slower than `encode`."""
+        self.predict_action_chunk(obs)

@@ -113,16 +113,19 @@ def spread(n_frames: int, n: int) -> np.ndarray:
 
 
 def pooled_activations(vla, layers: list[str], pooling: str, obs: PolicyInput) -> dict[str, np.ndarray]:
-    """One `encode` of a batch with every chosen layer captured: layer -> [B, width] float32."""
+    """One `encode` of a batch (`encode_actions` for the `action` set) with every chosen layer captured: layer ->
+    [B, width] float32, the mean over the forwards that read the set (an autoregressive model's `action` set: one
+    position a forward, the prompt's last token and each decode step; every other set: one forward)."""
     with capture(vla, layers, pooling) as readings, torch.inference_mode():
-        vla.encode(obs)
+        vla.encode_for(obs, pooling)
     empty = [name for name in layers if not readings[name]]
     if empty:
         raise UsageError(
             f"layer {empty[0]} has no tokens in the read-out set {pooling!r} (an action expert's layers have no "
-            f"image or text tokens); choose pooling=prefix or pooling=last, or other layers"
+            f"image or text tokens, a hybrid's backbone no action tokens); choose pooling=prefix or pooling=last, "
+            f"or other layers"
         )
-    return {name: readings[name][0].float().cpu().numpy() for name in layers}
+    return {name: torch.stack(readings[name]).mean(0).float().cpu().numpy() for name in layers}
 
 
 def default_output(cfg: DictConfig) -> Path:

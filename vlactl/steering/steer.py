@@ -42,11 +42,13 @@ class Steerer:
     constraint and batch row: reading before and after, ||u||, and whether u was non-zero."""
 
     def __init__(self, vla, constraints: list[Constraint], method: str = "control", alpha: float = 0.0,
-                 directions: dict[str, torch.Tensor] | None = None, pooling: str = "prefix"):
+                 directions: dict[str, torch.Tensor] | None = None, pooling: str | None = None):
+        """`pooling`: the read-out set pushed; by default the one the probes were fitted at (all must share it)."""
         if method not in METHODS:
             raise UsageError(f"unknown steering method {method!r}; allowed: {', '.join(METHODS)}")
         if not constraints:
             raise UsageError("steering needs at least one constraint")
+        pooling = pooling or constraints[0].probe.pooling
         for c in constraints:
             c.probe.check_fits(vla.name, vla.layer_width(c.layer), pooling)
         if method == "direction" and not {c.layer for c in constraints} <= set(directions or {}):

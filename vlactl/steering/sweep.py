@@ -109,8 +109,9 @@ def run_sweep(cfg: DictConfig, load_policy=None) -> Path:
 def _sweep_batch(vla, obs: PolicyInput, index, layers, units, cfg, bar) -> tuple[pd.DataFrame, pd.DataFrame]:
     """One batch of frames: the change of every action dimension per layer and alpha, and each layer's norm."""
     with capture(vla, layers, cfg.pooling) as seen, torch.inference_mode():
-        vla.encode(obs)
-    norms = [pd.DataFrame({"layer": layer, "frame": index, "norm": seen[layer][0].float().norm(dim=-1).numpy()})
+        vla.encode_for(obs, cfg.pooling)
+    norms = [pd.DataFrame({"layer": layer, "frame": index,
+                           "norm": torch.stack(seen[layer]).mean(0).float().norm(dim=-1).numpy()})
              for layer in layers if seen[layer]]
     plain = _predict(vla, obs)
     changes = []

@@ -14,7 +14,7 @@ from transformers import DynamicCache, LlamaModel
 from vlactl.models.autoregressive.configuration_autoregressive import AutoregressiveConfig
 from vlactl.models.autoregressive.processor_autoregressive import AutoregressiveProcessor
 from vlactl.models.parts.policy import EmbeddedPolicy
-from vlactl.models.parts.prefix import PrefixEmbedder, empty_masks, full_attention, pad_masks, prefix_lm_attention
+from vlactl.models.parts.prefix import PrefixEmbedder, decode_masks, full_attention, pad_masks, prefix_lm_attention
 
 
 class AutoregressivePolicy(EmbeddedPolicy):
@@ -60,7 +60,7 @@ class AutoregressivePolicy(EmbeddedPolicy):
 
     def _prefill(self, inputs) -> tuple[torch.Tensor, DynamicCache]:
         x, masks = self._prompt(inputs)
-        self._masks["backbone"] = masks
+        self._masks["backbone"] = {**masks, "action": masks["last"]}  # the prompt's last token writes the first action token
         cache = DynamicCache()
         attention = full_attention(x.shape[0], x.shape[1], x.shape[1]) if self._prefix_lm else None
         h = self.backbone(inputs_embeds=x, attention_mask=attention, past_key_values=cache, use_cache=True)
@@ -70,7 +70,7 @@ class AutoregressivePolicy(EmbeddedPolicy):
     def _sample(self, inputs) -> torch.Tensor:
         h, cache = self._prefill(inputs)
         b = h.shape[0]
-        self._masks["backbone"] = empty_masks(b, 1)  # decode steps hold no prompt token: nothing read or written
+        self._masks["backbone"] = decode_masks(b)
         ids = []
         for k in range(self.config.chunk_size * self.config.action_dim):
             ids.append(self._pick(self.head(h)))
@@ -92,3 +92,6 @@ class AutoregressivePolicy(EmbeddedPolicy):
 
     def _encode(self, inputs) -> None:
         self._prefill(inputs)
+
+    def encode_actions(self, obs) -> None:
+        self.predict_action_chunk(obs)

@@ -92,7 +92,8 @@ class HybridPolicy(EmbeddedPolicy):
         last = torch.zeros(b, s, dtype=torch.bool)
         last[:, -1] = True
         none = torch.zeros(b, s, dtype=torch.bool)
-        self._masks["expert"] = {"prefix": suffix, "last": last, "image": none, "text": none}
+        self._masks["expert"] = {"prefix": suffix, "last": last, "image": none, "text": none,
+                                "action": suffix}
         positions = torch.arange(n_prefix, n_prefix + s)
         out = self.expert(
             inputs_embeds=x,

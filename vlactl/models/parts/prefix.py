@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from vlactl.models.base import POOLINGS
 from vlactl.models.parts.config import VLAConfig
 from vlactl.models.parts.vision import ImageTokenizer
 
@@ -32,6 +33,7 @@ class PrefixEmbedder(nn.Module):
             "image": (segment == 0).expand(b, -1),
             "text": torch.cat([torch.zeros(b, n_img, dtype=torch.bool), text_mask, torch.zeros(b, 1, dtype=torch.bool)], 1),
             "last": (segment == 2).expand(b, -1),
+            "action": torch.zeros(b, x.shape[1], dtype=torch.bool),  # no prompt token is written as an action
         }
         return x, masks
 
@@ -55,5 +57,8 @@ def pad_masks(masks: dict[str, torch.Tensor], extra: int) -> dict[str, torch.Ten
     return {k: torch.cat([m, torch.zeros(m.shape[0], extra, dtype=torch.bool)], 1) for k, m in masks.items()}
 
 
-def empty_masks(batch: int, tokens: int) -> dict[str, torch.Tensor]:
-    return {k: torch.zeros(batch, tokens, dtype=torch.bool) for k in ("prefix", "image", "text", "last")}
+def decode_masks(batch: int) -> dict[str, torch.Tensor]:
+    """An autoregressive decode step's one token: in no prompt set, in the `action` set (it writes the next one)."""
+    masks = {k: torch.zeros(batch, 1, dtype=torch.bool) for k in POOLINGS}
+    masks["action"] = torch.ones(batch, 1, dtype=torch.bool)
+    return masks
