@@ -1,6 +1,8 @@
 """Constrained rollouts end to end with the random test model: probes from collect + train-probes on a synthetic
 dataset, then `vlactl rollout --constraint gripper=open --method control|prompt|none`."""
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -268,7 +270,7 @@ def test_the_stop_takes_its_read_outs_from_the_stop_probes(probes, tmp_path):
     """stop_probes=: the stop's read-outs (height's dz among them) from that run; speed and the holds from probes=."""
     from vlactl.rollout.constraints import parse_constraint
     from vlactl.rollout.plan import steering
-    from vlactl.steering.probe_file import load_probe
+    from vlactl.steering.probe_file import load_probe, save_probe
     from vlactl.steering.train_probes import probe_filename
 
     result = CliRunner().invoke(app, ["train-probes", f"activations={probes.parent / 'acts'}",
@@ -289,6 +291,10 @@ def test_the_stop_takes_its_read_outs_from_the_stop_probes(probes, tmp_path):
     with pytest.raises(UsageError, match="stop_probes=.* needs pause=true"):
         steering(rollout_config(["model=random", "method=control", "constraint=height=high", f"probes={probes}",
                                  f"stop_probes={tmp_path / 'stop'}"]), parse_constraint("height=high", cfg.window))
+    for path in (tmp_path / "stop" / "probes").iterdir():  # stop probes fitted at another read-out set
+        save_probe(dataclasses.replace(load_probe(path), pooling="action"), path)
+    with pytest.raises(UsageError, match="read action and prefix: fit them on activations of one pooling"):
+        steering(cfg, parse_constraint("height=high", cfg.window))
 
 
 # --- several constraints at once ----------------------------------------------------------------------------------

@@ -91,6 +91,10 @@ def steering(cfg: DictConfig, constraint) -> Steering:
                       "measures where a push reaches the actions", file=sys.stderr)
             probes += _load_probes(source, layers, feature, str(source))
         holds = _hold_probes(cfg, constraints, run, probes)
+        readouts = sorted({p.pooling for p in probes + holds})
+        if len(readouts) > 1:
+            raise UsageError(f"one push reads one read-out set, and the probes of {', '.join(map(str, sources))} "
+                             f"read {' and '.join(readouts)}: fit them on activations of one pooling")
     meandiff = cfg.method == "meandiff"
     directions = mean_difference_directions(cfg, constraints[0], [p.layer for p in probes]) if meandiff else None
     bounds = Bounds(speed_threshold=threshold, metres_per_unit=scale, decay=float(cfg.barrier_decay),
