@@ -226,6 +226,23 @@ def test_a_layer_group_steers_each_of_its_steerable_layers(probes, tmp_path):
     assert sorted(summary["steered_layers"]) == expert
 
 
+def test_probes_fitted_at_the_action_set_steer_there(tmp_path):
+    """A probe run of `pooling=action` (the expert's action tokens here) is pushed at that set in a rollout."""
+    demos = write_synthetic_demos(tmp_path / "demos", episodes=6, frames=8)
+    runner, common = CliRunner(), [f"cache_dir={tmp_path / 'cache'}", "threads=1"]
+    result = runner.invoke(app, ["collect", "model=random", f"dataset={demos}", f"output_dir={tmp_path / 'acts'}",
+                                 "pooling=action", "layers=[expert.0,expert.1]", *common])
+    assert result.exit_code == 0, result.output
+    result = runner.invoke(app, ["train-probes", f"activations={tmp_path / 'acts'}", f"output_dir={tmp_path / 'run'}",
+                                 "features=[gripper_action,dx,dy,dz]", "cv_folds=2", "robustness_directions=2"])
+    assert result.exit_code == 0, result.output
+    summary = rollout(tmp_path, "method=control", f"probes={tmp_path / 'run'}", "constraint=height=high",
+                      "layers=[expert.0]", "metres_per_unit=0.012", "height_margin=0", "run_name=pushed")
+    steps = pd.read_parquet(tmp_path / "pushed" / "steps.parquet").dropna(subset=["bound_lo"])
+    assert summary["steered_layers"] == ["expert.0"] and (steps["passes"] >= 1).any()
+    assert (steps.loc[steps["passes"] >= 1, "u_norm"] > 0).all()
+
+
 @pytest.mark.parametrize("constraint", ["height=high", "gripper=closed"])
 def test_action_boxes_push_only_when_the_prediction_breaks_the_bound(probes, tmp_path, constraint):
     rollout(tmp_path, "method=control", f"probes={probes}", f"constraint={constraint}", "layers=[backbone.1]",

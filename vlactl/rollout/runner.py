@@ -106,8 +106,8 @@ def run_rollout(cfg: DictConfig, load_policy=None) -> dict:
         agent = load_agent(str(cfg.model), cfg.replan_every, load_policy, bool(cfg.snap_gripper), ensemble)
     from vlactl.render_presets import warn_if_rendered_otherwise
     warn_if_rendered_otherwise(str(cfg.model), getattr(agent, "vla", None), env)
-    for probe in plan.probes + plan.holds:  # here, not in a worker after its start-up; rollouts steer at "prefix"
-        probe.check_fits(agent.vla.name, agent.vla.layer_width(probe.layer), "prefix")
+    for probe in plan.probes + plan.holds:  # here, not in a worker after its start-up; pushed where they were fitted
+        probe.check_fits(agent.vla.name, agent.vla.layer_width(probe.layer))
     policy = {"needs_images": agent.needs_images, "chunk_size": agent.chunk_size, "replan_every": agent.replan_every,
               "gripper_levels": None if agent.gripper_levels is None else agent.gripper_levels.tolist()}
     if cfg.judge_from and perturbation is not None:

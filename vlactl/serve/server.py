@@ -107,7 +107,7 @@ class PolicyServer:
         for probe in steering.probes + steering.holds:  # probes of another model or layer width read nothing
             if probe.layer not in self.metadata["layer_widths"] and probe.layer not in self.vla.layer_names():
                 raise UsageError(f"probe {probe.feature}@{probe.layer}: {self.vla.name} has no layer {probe.layer!r}")
-            probe.check_fits(self.vla.name, self.metadata["layer_widths"].get(probe.layer), "prefix")
+            probe.check_fits(self.vla.name, self.metadata["layer_widths"].get(probe.layer))
         session.agent = ConstrainedAgent(self.vla, constraint, steering, replan_every, snap)
 
     # --- batching ------------------------------------------------------------------------------------------
