@@ -135,3 +135,7 @@ def test_a_push_at_the_action_set_is_added_at_every_written_token():
         steered = policy.predict_action_chunk(obs)
     assert pushed == [(2, policy.layer_width("backbone.0"))] * (policy.chunk_size * 7)
     assert not torch.equal(plain, steered)
+    written = []
+    with intervene(policy, ["backbone.0"], lambda name, pooled: written.append(policy.written_dimension()), "action"):
+        policy.predict_action_chunk(obs)
+    assert written == list(range(7)) * policy.chunk_size  # dx, dy, dz, droll, dpitch, dyaw, gripper, then again

@@ -270,9 +270,12 @@ def test_openvla_reads_the_prompt_pass_and_leaves_decode_steps_alone(openvla_che
         chunk = vla.predict_action_chunk(obs())
     assert chunk.shape == (2, 1, 7) and set(chunk[:, 0, 6].tolist()) <= {-1.0, 1.0}
     assert [len(got[name]) for name in vla.layer_names()] == [2, 2, 2]  # one prompt pass per observation, no decodes
-    with capture(vla, ["backbone.0"], "action") as written:
+    dimensions = []
+    with capture(vla, ["backbone.0"], "action") as written, \
+            intervene(vla, ["backbone.0"], lambda name, h: dimensions.append(vla.written_dimension()), "action"):
         vla.encode_for(obs(), "action")
     assert len(written["backbone.0"]) == 2 * 7  # per observation: the prompt's last token, then 6 decode steps
+    assert dimensions == list(range(7)) * 2
     vla.encode(obs())
     image, text, prefix = (vla.token_mask("backbone.0", p) for p in ("image", "text", "prefix"))
     assert image.sum(1).tolist() == [16, 16]  # (32 px / 8 px)^2 patches

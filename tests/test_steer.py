@@ -107,7 +107,12 @@ def test_the_push_goes_where_the_probes_read():
     vla = tiny_policy("autoregressive")
     with Steerer(vla, [Constraint(probe(vla, pooling="action"), 1.0, 1.0)]) as steer:
         vla.predict_action_chunk(observation())
-    assert steer.pooling == "action" and len(steer.log) == 2 * vla.chunk_size * 7
+    assert steer.pooling == "action" and len(steer.log) == 2 * vla.chunk_size * 7  # a state feature: every token
     assert all(row["after"] == pytest.approx(1.0) for row in steer.log)
+    # a feature of the action: only where its dimensions' tokens are written (dz the third of each action's seven)
+    for feature, per_action in (("dz", 1), ("speed", 3)):
+        with Steerer(vla, [Constraint(probe(vla, feature=feature, pooling="action"), 1.0, 1.0)]) as steer:
+            vla.predict_action_chunk(observation())
+        assert len(steer.log) == 2 * vla.chunk_size * per_action
     with pytest.raises(UsageError, match="unknown steering method 'push'"):
         Steerer(vla, [Constraint(probe(vla))], method="push")

@@ -6,8 +6,19 @@ import numpy as np
 
 STATE_FEATURES = ("x", "y", "z", "roll", "pitch", "yaw", "gripper")
 ACTION_FEATURES = ("dx", "dy", "dz", "droll", "dpitch", "dyaw", "gripper_action")
+TRANSLATION = ("dx", "dy", "dz")
 CONTROL_DT = 0.05  # LIBERO runs its controller at 20 Hz
 FINGER_OPEN = 0.04  # Panda finger joint travel (m); qpos is (+q, -q)
+
+
+def action_dimensions(feature: str) -> tuple[int, ...] | None:
+    """The action dimensions a feature is a function of: a commanded-action feature its own, speed the translation's;
+    None for a feature of the state."""
+    if feature in ACTION_FEATURES:
+        return (ACTION_FEATURES.index(feature),)
+    if feature == "speed":
+        return tuple(ACTION_FEATURES.index(f) for f in TRANSLATION)
+    return None
 
 
 def quat_xyzw_to_euler(quat: np.ndarray) -> np.ndarray:

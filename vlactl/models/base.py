@@ -111,6 +111,12 @@ class VLA(ABC):
     def layer_width(self, name: str) -> int:
         raise NotImplementedError
 
+    def written_dimension(self) -> int | None:
+        """The action dimension (0-6) of the token the forward now running writes, for a model that writes its
+        actions one dimension a token (autoregressive); None where a forward writes whole actions (an action expert)
+        or none."""
+        return None
+
     # --- running ----------------------------------------------------------------------------------------
     @abstractmethod
     def predict_action_chunk(self, obs: PolicyInput) -> torch.Tensor:

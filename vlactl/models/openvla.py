@@ -91,6 +91,7 @@ class OpenVLAAdapter(StackedLayers):
         self.device = next(model.parameters()).device
         self.dtype = next(model.parameters()).dtype
         self._masks: dict[str, torch.Tensor] = {}
+        self._written = 0  # the action dimension the token of the pass now running writes
         self._image_tokens: int | None = None
         self.prompt_passes = 0  # forwards that ran the projected image: generate must make one per observation
         self._projector().register_forward_hook(self._count_image_tokens)
@@ -142,6 +143,9 @@ class OpenVLAAdapter(StackedLayers):
         self.layer_module(name)
         return self._masks[pooling]
 
+    def written_dimension(self) -> int:
+        return self._written
+
     def _count_image_tokens(self, module, args, output) -> None:
         self._image_tokens = output.shape[1]
 
@@ -154,10 +158,12 @@ class OpenVLAAdapter(StackedLayers):
         valid = attention[:, -t:].bool() if attention is not None and attention.dim() == 2 else \
             torch.ones(b, t, dtype=torch.bool, device=device)
         if self._image_tokens is None:  # a decode step: no prompt tokens, each one writes the next action token
+            self._written += 1
             self._masks = {**dict.fromkeys(POOLINGS, torch.zeros(b, t, dtype=torch.bool, device=device)),
                            "action": valid}
             return
         self.prompt_passes += 1
+        self._written = 0
         positions = torch.arange(t, device=device)
         image = valid & (positions >= 1) & (positions < 1 + self._image_tokens)
         last = last_true(valid)

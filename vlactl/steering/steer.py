@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
+from vlactl.env.features import action_dimensions
 from vlactl.errors import UsageError
 from vlactl.models.hooks import intervene
 from vlactl.steering.controller import box_control, multi_box_control
@@ -64,8 +65,19 @@ class Steerer:
     def reset_log(self) -> None:
         self.log, self._forwards = [], 0
 
-    def _u(self, layer: str, x: torch.Tensor) -> torch.Tensor:
-        constraints = self.by_layer[layer]
+    def _writing(self, constraints: list[Constraint]) -> list[Constraint]:
+        """Those of `constraints` to push at this forward: at the `action` set of a model that writes one action
+        dimension a token, those whose feature is a function of the dimension this forward writes (a push at another
+        position of the chunk would change another dimension's token); otherwise all."""
+        written = self.vla.written_dimension() if self.pooling == "action" else None
+        if written is None:
+            return constraints
+        return [c for c in constraints if written in (action_dimensions(c.probe.feature) or (written,))]
+
+    def _u(self, layer: str, x: torch.Tensor) -> torch.Tensor | None:
+        constraints = self._writing(self.by_layer[layer])
+        if not constraints:
+            return None
         w = torch.stack([c.probe.weight for c in constraints]).to(torch.float64)
         b = torch.tensor([c.probe.bias for c in constraints], dtype=torch.float64)
         lo = torch.tensor([c.zmin for c in constraints], dtype=torch.float64)

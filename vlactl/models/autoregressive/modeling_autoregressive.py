@@ -28,6 +28,7 @@ class AutoregressivePolicy(EmbeddedPolicy):
         self.backbone = LlamaModel(config.llama_config(vocab_size=self.n_words + config.bins))
         self.prefix = PrefixEmbedder(config, self.backbone.embed_tokens)
         self.head = nn.Linear(config.width, config.bins, bias=False)
+        self._written = 0  # the index in the chunk of the action token the forward now running writes
 
     @property
     def _prefix_lm(self) -> bool:
@@ -35,6 +36,9 @@ class AutoregressivePolicy(EmbeddedPolicy):
 
     def _stacks(self):
         return {"backbone": self.backbone.layers}
+
+    def written_dimension(self) -> int:
+        return self._written % self.config.action_dim
 
     def _embed_bins(self, ids: torch.Tensor) -> torch.Tensor:
         return self.backbone.embed_tokens(ids + self.n_words)
@@ -60,6 +64,7 @@ class AutoregressivePolicy(EmbeddedPolicy):
 
     def _prefill(self, inputs) -> tuple[torch.Tensor, DynamicCache]:
         x, masks = self._prompt(inputs)
+        self._written = 0
         self._masks["backbone"] = {**masks, "action": masks["last"]}  # the prompt's last token writes the first action token
         cache = DynamicCache()
         attention = full_attention(x.shape[0], x.shape[1], x.shape[1]) if self._prefix_lm else None
@@ -75,6 +80,7 @@ class AutoregressivePolicy(EmbeddedPolicy):
         for k in range(self.config.chunk_size * self.config.action_dim):
             ids.append(self._pick(self.head(h)))
             if k + 1 < self.config.chunk_size * self.config.action_dim:
+                self._written = k + 1
                 step = self._embed_bins(ids[-1])[:, None]
                 h = self.backbone(inputs_embeds=step, past_key_values=cache, use_cache=True).last_hidden_state[:, -1]
         chunk = torch.stack(ids, 1).view(b, self.config.chunk_size, self.config.action_dim)
