@@ -7,6 +7,7 @@ from synthetic_demos import observation
 from vlactl.errors import UsageError
 from vlactl.models.hooks import capture
 from vlactl.models.registry import tiny_policy
+from vlactl.rollout.constrained import push_record
 from vlactl.steering.probes import REGRESSION, Probe
 from vlactl.steering.steer import Constraint, Steerer
 
@@ -114,5 +115,11 @@ def test_the_push_goes_where_the_probes_read():
         with Steerer(vla, [Constraint(probe(vla, feature=feature, pooling="action"), 1.0, 1.0)]) as steer:
             vla.predict_action_chunk(observation())
         assert len(steer.log) == 2 * vla.chunk_size * per_action
+    # a hold on dx is pushed where dx is written, before dz: the step table still reads the constraint's own probe
+    dz, dx = probe(vla, feature="dz", pooling="action"), probe(vla, feature="dx", pooling="action", seed=1)
+    with Steerer(vla, [Constraint(dz, 1.0, 1.0), Constraint(dx, 0.0, 0.0, relative=True)]) as steer:
+        vla.predict_action_chunk(observation())
+    assert [(e["box"], e["feature"]) for e in steer.log if e["row"] == 0][:2] == [(1, "dx"), (0, "dz")]
+    assert push_record(steer.log)["reading_after"] == pytest.approx(1.0)
     with pytest.raises(UsageError, match="unknown steering method 'push'"):
         Steerer(vla, [Constraint(probe(vla))], method="push")

@@ -343,11 +343,11 @@ class ConstrainedAgent(VLAAgent):
 
 
 def push_record(log: list[dict], features: list[str] | None = None) -> dict:
-    """A steered prediction's reading columns from its Steerer log: the reading at the first forward through the first
-    steered layer (row 0: one observation), and the push summed over every forward of that prediction. `features`
-    (several constraints: theirs, `height`, ...): the reading of each constraint's probe at its first forward, as
-    `reading_before_<feature>` and `reading_after_<feature>`."""
-    first = log[0]
+    """A steered prediction's reading columns from its Steerer log: the reading of the first steered layer's first
+    probe (the constraint's, not a hold's) at the first forward that pushed it (row 0: one observation), and the push
+    summed over every forward of that prediction. `features` (several constraints: theirs, `height`, ...): the reading
+    of each constraint's probe at its first forward, as `reading_before_<feature>` and `reading_after_<feature>`."""
+    first = next(e for e in log if e["box"] == 0)
     pushes = {}  # one per forward of a steered layer: the first entry of its row 0
     for e in log:
         if e["row"] == 0:

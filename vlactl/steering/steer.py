@@ -40,7 +40,8 @@ class Constraint:
 
 class Steerer:
     """Context manager: hooks installed on enter, removed on exit. `log` holds one dict per forward, layer,
-    constraint and batch row: reading before and after, ||u||, and whether u was non-zero."""
+    constraint pushed there (`box`: its index among the layer's constraints) and batch row: reading before and after,
+    ||u||, and whether u was non-zero."""
 
     def __init__(self, vla, constraints: list[Constraint], method: str = "control", alpha: float = 0.0,
                  directions: dict[str, torch.Tensor] | None = None, pooling: str | None = None):
@@ -65,19 +66,19 @@ class Steerer:
     def reset_log(self) -> None:
         self.log, self._forwards = [], 0
 
-    def _writing(self, constraints: list[Constraint]) -> list[Constraint]:
-        """Those of `constraints` to push at this forward: at the `action` set of a model that writes one action
+    def _writing(self, constraints: list[Constraint]) -> list[int]:
+        """The indices of `constraints` to push at this forward: at the `action` set of a model that writes one action
         dimension a token, those whose feature is a function of the dimension this forward writes (a push at another
         position of the chunk would change another dimension's token); otherwise all."""
         written = self.vla.written_dimension() if self.pooling == "action" else None
-        if written is None:
-            return constraints
-        return [c for c in constraints if written in (action_dimensions(c.probe.feature) or (written,))]
+        return [k for k, c in enumerate(constraints)
+                if written is None or written in (action_dimensions(c.probe.feature) or (written,))]
 
     def _u(self, layer: str, x: torch.Tensor) -> torch.Tensor | None:
-        constraints = self._writing(self.by_layer[layer])
-        if not constraints:
+        active = self._writing(self.by_layer[layer])
+        if not active or (self.method != "control" and active[0] != 0):  # a fixed push is along the first probe
             return None
+        constraints = [self.by_layer[layer][k] for k in active]
         w = torch.stack([c.probe.weight for c in constraints]).to(torch.float64)
         b = torch.tensor([c.probe.bias for c in constraints], dtype=torch.float64)
         lo = torch.tensor([c.zmin for c in constraints], dtype=torch.float64)
@@ -96,7 +97,7 @@ class Steerer:
             for k, c in enumerate(constraints):
                 origin = float(before[row, k]) if c.relative else 0.0  # the log holds every box in reading units
                 self.log.append({
-                    "forward": self._forwards, "layer": layer, "feature": c.probe.feature, "row": row,
+                    "forward": self._forwards, "layer": layer, "box": active[k], "feature": c.probe.feature, "row": row,
                     "before": float(before[row, k]), "after": float(after[row, k]),
                     "zmin": origin + c.zmin, "zmax": origin + c.zmax,
                     "u_norm": float(norm[row]), "active": bool(norm[row] > 0),
