@@ -64,8 +64,8 @@ class AutoregressivePolicy(EmbeddedPolicy):
 
     def _prefill(self, inputs) -> tuple[torch.Tensor, DynamicCache]:
         x, masks = self._prompt(inputs)
-        self._written = 0
-        self._masks["backbone"] = {**masks, "action": masks["last"]}  # the prompt's last token writes the first action token
+        self._written = 0  # the prompt's last token writes the first action token
+        self._masks["backbone"] = {**masks, "action": masks["last"]}
         cache = DynamicCache()
         attention = full_attention(x.shape[0], x.shape[1], x.shape[1]) if self._prefix_lm else None
         h = self.backbone(inputs_embeds=x, attention_mask=attention, past_key_values=cache, use_cache=True)
