@@ -159,6 +159,7 @@ policies: install
 	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=50 workers=2
 	$(call extended_demos,data/demos/libero_spatial_recovery,episodes_per_task=20 recovery_episodes_per_task=25)
 	$(call extended_demos,data/demos/libero_spatial_noisy,episodes_per_task=50 noisy_episodes_per_task=30)
+	$(call extended_demos,data/demos/libero_spatial_probe,episodes_per_task=4)
 	$(call extended_demos,data/demos/libero_spatial_robust,episodes_per_task=10 recovery_episodes_per_task=10 \
 	  perturbed_episodes_per_task=12)
 	$(call extended_demos,data/demos/libero_spatial_robust3,episodes_per_task=10 recovery_episodes_per_task=5 \
@@ -168,7 +169,7 @@ policies: install
 
 # The probes that ship beside each model in data/probes/<model>/ (found by `vlactl rollout --constraint ...` by
 # default), made by fit_probes (model and its options, demonstrations, folder, train-probes options): activations
-# (every 4th frame), the observability probes (observe/: every feature, the best ridge penalty) and the steering
+# (every 4th frame, or PROBE_COLLECT_<model>), the observability probes (observe/: every feature, the best ridge penalty) and the steering
 # probes (steer/: the action read-outs the constraints push): one candidate run per STEER_FAMILIES (fit: ridge /
 # logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale), each measured by
 # `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md);
@@ -176,6 +177,11 @@ policies: install
 # regressed out, so that a stopped translation does not tilt the hand). About 8 min a model on 2 idle cores (20 beside
 # other jobs).
 PROBE_DEMOS ?= data/demos/libero_spatial_robust3
+PROBE_COLLECT ?= every=4
+# The autoregressive model's probes read where it writes its actions (its decode steps: `pooling=action`; a push on the
+# prompt's read-out barely reaches its decoded tokens), fitted on 4 ordinary episodes a task (docs/steering.md).
+PROBE_DEMOS_autoregressive ?= data/demos/libero_spatial_probe
+PROBE_COLLECT_autoregressive ?= every=2 pooling=action
 STEER_FEATURES ?= [dx,dy,dz,dyaw,speed,gripper_action]
 STEER_PROBE_ARGS ?= ridge_grid=[1000000] logistic_l2=1e4
 STEER_FAMILIES ?= fit meandiff covariance
@@ -184,7 +190,8 @@ STOP_PROBE_FEATURES ?= [dx,dy,dz,droll,dpitch,dyaw,speed,gripper_action]  # each
 comma := ,
 join_commas = $(subst $(eval) ,$(comma),$(strip $(1)))
 define fit_probes
-	$(BIN)/vlactl collect model=$(1) dataset=$(2) every=4 output_dir=$(3)/activations
+	$(BIN)/vlactl collect model=$(1) dataset=$(2) output_dir=$(3)/activations \
+	  $(or $(PROBE_COLLECT_$(firstword $(1))),$(PROBE_COLLECT))
 	$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/observe $(4)
 	$(foreach f,$(STEER_FAMILIES),$(BIN)/vlactl train-probes activations=$(3)/activations output_dir=$(3)/steer-$(f) \
 	  features=$(STEER_FEATURES) family=$(f) $(STEER_PROBE_ARGS) $(4)
@@ -200,7 +207,7 @@ endef
 weights_id = $(shell sha256sum data/policies/$(1)/model.safetensors | cut -c1-16)
 define build_probes
 	$(eval build := outputs/probes-build/$(1)-$(call weights_id,$(1)))
-	$(call fit_probes,$(1),$(PROBE_DEMOS),$(build))
+	$(call fit_probes,$(1),$(or $(PROBE_DEMOS_$(1)),$(PROBE_DEMOS)),$(build))
 	rm -rf data/probes/$(1).new && mkdir -p data/probes/$(1).new && for f in observe steer stop; do \
 	  mkdir -p data/probes/$(1).new/$$f && cp -r $(build)/$$f/probes \
 	  $(build)/$$f/*.parquet $(build)/$$f/*.json $(build)/$$f/config.yaml \
