@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from vlactl.env.features import TRANSLATION
 from vlactl.errors import UsageError
 
 # feature -> (allowed values, default window, the step-table column judged = the probe feature box=state steers,
@@ -28,9 +29,9 @@ from vlactl.errors import UsageError
 #             the action read-outs box=action holds by default: those the constraint should leave alone; not dyaw
 #             for the gripper: held with the shipped probes it kept the gripper from closing, docs/steering.md)
 KINDS = {
-    "gripper": (("open", "closed"), 15, "gripper_action", ("gripper_action",), ("dx", "dy", "dz")),
+    "gripper": (("open", "closed"), 15, "gripper_action", ("gripper_action",), TRANSLATION),
     "height": (("low", "high"), 15, "z", ("dz",), ("dx", "dy", "gripper_action")),
-    "speed": (("low", "high"), 25, "speed", ("dx", "dy", "dz"), ("gripper_action",)),
+    "speed": (("low", "high"), 25, "speed", TRANSLATION, ("gripper_action",)),
 }
 BOXES = ("action", "state")
 PROMPTS = {  # what the prompting baseline appends to the instruction

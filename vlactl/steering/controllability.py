@@ -30,7 +30,7 @@ import pandas as pd
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from vlactl.config import REPO_ROOT, SHIPPED_PROBES, resolve_path, save_config, stage_output
-from vlactl.env.features import ACTION_FEATURES, STATE_FEATURES
+from vlactl.env.features import ACTION_FEATURES, STATE_FEATURES, TRANSLATION
 from vlactl.errors import UsageError, check_positive
 from vlactl.io import atomic_write_parquet, ensure_writable_dir
 from vlactl.steering.collect import frame_batch
@@ -250,7 +250,7 @@ def _summary(points: pd.DataFrame, layers: list[str], metrics: pd.DataFrame) -> 
     for (name, feature), pts in points.groupby(["layer", "feature"], sort=False):
         x = pts["target"].to_numpy()
         gain, r2 = _line(x, (pts["after"] - pts["before"]).to_numpy())
-        moved = set(LEAK_COLUMNS) & {OUTPUT[feature], *(("dx", "dy", "dz") if OUTPUT[feature] == "speed" else ())}
+        moved = set(LEAK_COLUMNS) & {OUTPUT[feature], *(TRANSLATION if OUTPUT[feature] == "speed" else ())}
         leaks = {f"leak_{c}": _line(x, pts[f"shift_{c}"].to_numpy())[0] if f"shift_{c}" in pts and c not in moved
                  else np.nan for c in LEAK_COLUMNS}
         cross = np.nan
