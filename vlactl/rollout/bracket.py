@@ -15,11 +15,10 @@ class Bracket:
     at that shift and sets the next, returning False when there is nothing left to try (the largest shift allowed was
     tried and is still short)."""
 
-    def __init__(self, origin: float, miss: float, first_gain: float = FIRST_GAIN):
-        """`origin`: the shift so far, where the quantity misses its target by `miss`; the first shift tried is
-        `first_gain` reading units per action unit of that miss."""
+    def __init__(self, origin: float, miss: float):
+        """`origin`: the shift so far, where the quantity misses its target by `miss`."""
         self.origin, self.inner, self.outer = origin, (origin, miss), None  # (shift, miss) short of / past the target
-        self.shift = origin - miss * first_gain
+        self.shift = origin - miss * FIRST_GAIN
 
     def update(self, miss: float) -> bool:
         shift, origin = self.shift, self.origin

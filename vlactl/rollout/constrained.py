@@ -47,9 +47,6 @@ READING_COLUMNS = ("reading_before", "reading_after", "u_norm", "control_active"
 PER_CONSTRAINT = ("reading_before", "reading_after", "action_before", "action_after", "bound_lo", "bound_hi")
 STOP_PROBE = 0.25  # pause: the finite-difference step of the stop's per-read-out shifts, a share of the shift so far
 STOP_STEPS = 3  # pause: Newton steps of the stop's push after its finite differences
-STOP_SETTLED = 0.02  # pause, one dimension a token: a read-out whose commands' mean is this near its stop is left there
-STOP_FIRST_GAIN = 1.0  # pause, one dimension a token: a read-out of the command in action units is first shifted by
-                       # its miss (a token's jumps leave no passes to grow a small first shift)
 SATURATED_GROWTH = 3  # pause: times a read-out's finite-difference step grows x4 while its commands stay clipped
 CLIPPED = 0.999  # an action command this near the [-1, 1] box's edge is clipped (the models clip their outputs)
 BAND = 0.15  # a pushed prediction is taken when its quantity lies between the bound and this far past it (action
@@ -109,9 +106,6 @@ class ConstrainedAgent(VLAAgent):
                         else steering.probes for c in self.constraints}
         if steering.pause:
             self._probes["speed"] = tuple(p for p in steering.probes if p.feature in STOP_READOUTS)
-        # each stop read-out pushed only where its own dimension is written (`Steerer`): the stop searches each alone
-        self._one_dimension_a_token = vla.written_dimension() is not None and all(
-            p.pooling == "action" for p in self._probes.get("speed", ()))
         if "gripper" not in self._probes:  # what keeps a held gripper on the action (`_gripper_kept`)
             self._probes["gripper"] = tuple(p for p in steering.holds if p.feature == "gripper_action")
 
@@ -233,11 +227,11 @@ class ConstrainedAgent(VLAAgent):
         log). That search turns the motion's own component to zero but leaves the others: pushing the translation
         read-outs along the motion also turns it sideways (offline, the mean command's norm goes 0.76 -> 0.42 at
         best), and the hand keeps turning. So each stop read-out (translation, and yaw where the probes have it)
-        gets its own shift, searched towards the stop at each executed step (zero, but the dz the height barrier
-        asks): by Newton steps where a push moves every command smoothly, by a bracketing search per read-out where
-        the model writes one dimension a token. Of the passes, the one nearest the speed bound, then nearest the
-        stop over all read-outs (yaw included), is taken. The shifts are kept as the stop's push weights (shift 1).
-        Returns (actions, 1.0, passes, log)."""
+        gets its own shift: their effect on every executed action's commands measured by finite differences, then
+        STOP_STEPS Newton steps (Broyden updates) towards the stop at each step (zero, but the dz the height barrier
+        asks) in least squares: a chunk whose commands only cancel on average still moves the hand. Of the passes,
+        the one nearest the speed bound, then nearest the stop over all read-outs (yaw included), is taken. The
+        shifts are kept as the stop's push weights (shift 1). Returns (actions, 1.0, passes, log)."""
         features = [f for f in STOP_READOUTS if any(p.feature == f for p in self._probes["speed"])]
         columns = [ACTION_FEATURES.index(f) for f in features]
         along = self._weights["speed"]
@@ -263,21 +257,10 @@ class ConstrainedAgent(VLAAgent):
             best = min(best, (rank(actions), actions, steerer.log, vector), key=lambda b: b[0])
             return commands(actions)
 
-        stop_search = self._stop_by_dimension if self._one_dimension_a_token else self._stop_by_newton
-        passes = stop_search(push, origin, commands(found[0]), wanted, len(features))
-        self._weights["speed"] = dict(zip(features, map(float, best[3])))
-        return best[1], 1.0, passes, best[2]
-
-    @staticmethod
-    def _stop_by_newton(push, origin, now, wanted, n: int) -> int:
-        """The stop's read-out shifts where a push moves every command together (an action expert): each read-out's
-        effect on every executed action's commands by finite differences, then STOP_STEPS Newton steps (Broyden
-        updates) in least squares. `push(vector)`: the commands (steps x n, flat) under the shifts `vector`; `now`:
-        those at `origin`. Returns the passes it took."""
-        step = STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
-        own, target = now.reshape(-1, n), wanted[:n]
-        slopes, passes = [], n + STOP_STEPS
-        for i, e in enumerate(np.eye(n)):
+        now, step = commands(found[0]), STOP_PROBE * max(float(np.abs(origin).max()), 1e-2)
+        own, target = now.reshape(-1, len(features)), wanted[:len(features)]
+        slopes, passes = [], len(features) + STOP_STEPS
+        for i, e in enumerate(np.eye(len(features))):
             # towards the stop, and further while the read-out's own commands sit clipped at the action box's edge
             # (the policy turning at full command: a small push moves nothing there, and the slope would read zero)
             size, clipped = (step if own[:, i].mean() <= target[i] else -step), np.abs(own[:, i]).min() >= CLIPPED
@@ -296,30 +279,8 @@ class ConstrainedAgent(VLAAgent):
             if move @ move > 0:
                 jacobian += np.outer(reached - now - jacobian @ move, move) / (move @ move)
             vector, now = vector + move, reached
-        return passes
-
-    @staticmethod
-    def _stop_by_dimension(push, origin, now, wanted, n: int) -> int:
-        """The stop's read-out shifts on a model that writes one action dimension a token, each read-out pushed only
-        where its dimension is written: a read-out moves its own commands alone (offline leaks <= 0.11 of its gain),
-        but in jumps of whole tokens, where finite differences read zero or a cliff. So each read-out gets its own
-        bracketing search on its commands' mean over the chunk, all of them in the same passes (as many as the Newton
-        stop takes); a read-out within STOP_SETTLED of its stop keeps its shift. Returns the passes it took."""
-        def misses(commands):
-            return commands.reshape(-1, n).mean(0) - wanted[:n]
-
-        settled = np.abs(misses(now)) <= STOP_SETTLED
-        brackets = [Bracket(float(o), 0.0 if done else float(m), STOP_FIRST_GAIN)
-                    for o, m, done in zip(origin, misses(now), settled)]
-        passes = 0
-        for _ in range(n + STOP_STEPS):
-            if settled.all():
-                break
-            miss, passes = misses(push(np.array([b.shift for b in brackets]))), passes + 1
-            for i, b in enumerate(brackets):
-                if not settled[i]:
-                    settled[i] = abs(miss[i]) <= STOP_SETTLED or not b.update(float(miss[i]))
-        return passes
+        self._weights["speed"] = dict(zip(features, map(float, best[3])))
+        return best[1], 1.0, passes, best[2]
 
     def _excess(self, constraint: Constraint, bounds: dict, actions) -> float:
         """How far the actions' quantity lies outside the constraint's bound (0 inside)."""
