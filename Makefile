@@ -169,13 +169,13 @@ policies: install
 
 # The probes that ship beside each model in data/probes/<model>/ (found by `vlactl rollout --constraint ...` by
 # default), made by fit_probes (model and its options, demonstrations, folder, train-probes options): activations
-# (every 4th frame, or PROBE_COLLECT_<model>), the observability probes (observe/: every feature, the best ridge penalty) and the steering
-# probes (steer/: the action read-outs the constraints push): one candidate run per STEER_FAMILIES (fit: ridge /
-# logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction and its scale), each measured by
-# `vlactl controllability`, and per feature the run whose push moves the predicted action most (docs/steering.md);
-# and the stop probes (stop/: the read-outs `pause=true` stops the arm with, fitted with the other action features
-# regressed out, so that a stopped translation does not tilt the hand). About 8 min a model on 2 idle cores (20 beside
-# other jobs).
+# (every 4th frame, or PROBE_COLLECT_<model>), the observability probes (observe/: every feature, the best ridge
+# penalty) and the steering probes (steer/: the action read-outs the constraints push): one candidate run per
+# STEER_FAMILIES (fit: ridge / logistic with STEER_PROBE_ARGS' strong penalties; meandiff, covariance: a direction
+# and its scale), each measured by `vlactl controllability`, and per feature the run whose push moves the predicted
+# action most (docs/steering.md); and the stop probes (stop/: the read-outs `pause=true` stops the arm with, fitted
+# with the other action features regressed out, so that a stopped translation does not tilt the hand). About 8 min a
+# model on 2 idle cores (20 beside other jobs).
 PROBE_DEMOS ?= data/demos/libero_spatial_robust3
 PROBE_COLLECT ?= every=4
 # The autoregressive model's probes read where it writes its actions (its decode steps: `pooling=action`; a push on the
