@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vlactl.env.features import ACTION_FEATURES
 from vlactl.rollout.agents import VLAAgent
 from vlactl.rollout.bracket import Bracket
-from vlactl.env.features import ACTION_FEATURES
-from vlactl.rollout.constraints import (GRIPPER_BOUND, STOP_READOUTS, Bounds, Constraint, action_bound,
+from vlactl.rollout.constraints import (GRIPPER_BOUND, KINDS, STOP_READOUTS, Bounds, Constraint, action_bound,
                                        action_quantity, as_constraints, box, pausable, prompted, push_weights,
                                        stop_bound)
 from vlactl.steering.steer import Constraint as ProbeBox
@@ -335,8 +335,6 @@ def push_record(log: list[dict], features: list[str] | None = None) -> dict:
               "active_share": sum(u > 0 for u in pushes) / len(pushes)}
     if features is None:
         return {"reading_before": first["before"], "reading_after": first["after"], **record}
-    from vlactl.rollout.constraints import KINDS
-
     for feature in features:
         entry = next((e for e in log if e["row"] == 0 and e["feature"] == KINDS[feature][3][0]), None)
         if entry is not None:
