@@ -43,8 +43,9 @@ demo: install
 # checkpoint so far with TUNE_<name>_<stage>'s options, and for a stage written `<stage>+soup` the uniform average of
 # that fine-tune's weights and those it started from (`vlactl average-policies`, a model soup), which becomes the
 # checkpoint so far; the last one is copied into data/policies/, then the probes that ship beside them.
-# The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones and trains a
-# second cosine cycle. The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way
+# The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones, trains a
+# second cosine cycle, then is fine-tuned on a perturbation-weighted set that keeps the DART noise (10 ordinary, 10
+# noise-injected, 20 perturbed a task) and averaged with its start. The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way
 # back after the arm was raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes),
 # averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the
 # expert's way back from the states its own steered stop leaves (DAgger) and averaged once more, then a second DAgger
@@ -57,8 +58,9 @@ demo: install
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
-STAGES_autoregressive ?= continued
+STAGES_autoregressive ?= continued noisyrobust+soup
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
+TUNE_autoregressive_noisyrobust ?= dataset=data/demos/libero_spatial_noisy_robust steps=4000 lr=1e-4 warmup_steps=200
 STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup dagger7+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
@@ -159,6 +161,8 @@ policies: install
 	$(BIN)/vlactl demos suite=libero_spatial episodes_per_task=50 workers=2
 	$(call extended_demos,data/demos/libero_spatial_recovery,episodes_per_task=20 recovery_episodes_per_task=25)
 	$(call extended_demos,data/demos/libero_spatial_noisy,episodes_per_task=50 noisy_episodes_per_task=30)
+	$(call extended_demos,data/demos/libero_spatial_noisy_robust,episodes_per_task=10 noisy_episodes_per_task=10 \
+	  perturbed_episodes_per_task=20)
 	$(call extended_demos,data/demos/libero_spatial_probe,episodes_per_task=4)
 	$(call extended_demos,data/demos/libero_spatial_robust,episodes_per_task=10 recovery_episodes_per_task=10 \
 	  perturbed_episodes_per_task=12)
