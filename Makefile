@@ -45,15 +45,16 @@ demo: install
 # checkpoint so far; the last one is copied into data/policies/, then the probes that ship beside them.
 # The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones, trains a
 # second cosine cycle, then is fine-tuned on a perturbation-weighted set that keeps the DART noise (10 ordinary, 10
-# noise-injected, 20 perturbed a task) and averaged with its start. The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way
-# back after the arm was raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes),
-# averaged with its start, then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the
-# expert's way back from the states its own steered stop leaves (DAgger) and averaged once more, then a second DAgger
-# round on the stops of both pausing constraints, averaged the same way, then DAgger on the perturbations (the policy's
-# own states after the arm was raised, closed, turned, slowed or shifted, and its own pausing stops), averaged again,
-# then a second such round on that average's own perturbed states (raised, closed, slowed, shifted), averaged again:
-# each fine-tune alone loses tasks the checkpoint before solved, the average keeps them and most of the way back it
-# learned (docs/models.md). The robust3 perturbed set is also what the shipped probes are fitted on.
+# noise-injected, 20 perturbed a task) and averaged with its start. The hybrid is fine-tuned on recovery demonstrations,
+# then on perturbed ones (the expert's way back after the arm was raised, held, shifted, slowed or its gripper closed,
+# beside ordinary and recovery episodes), averaged with its start, then fine-tuned on a set weighted to perturbed
+# episodes and averaged again, then on the expert's way back from the states its own steered stop leaves (DAgger) and
+# averaged once more, then a second DAgger round on the stops of both pausing constraints, averaged the same way, then
+# DAgger on the perturbations (the policy's own states after the arm was raised, closed, turned, slowed or shifted, and
+# its own pausing stops), averaged again, then a second such round on that average's own perturbed states (raised,
+# closed, slowed, shifted), averaged again: each fine-tune alone loses tasks the checkpoint before solved, the average
+# keeps them and most of the way back it learned (docs/models.md). The robust3 perturbed set is also what the shipped
+# probes are fitted on.
 # Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
