@@ -45,23 +45,25 @@ demo: install
 # checkpoint so far; the last one is copied into data/policies/, then the probes that ship beside them.
 # The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones, trains a
 # second cosine cycle, then is fine-tuned on a perturbation-weighted set that keeps the DART noise (10 ordinary, 10
-# noise-injected, 20 perturbed a task) and averaged with its start. The hybrid is fine-tuned on recovery demonstrations,
-# then on perturbed ones (the expert's way back after the arm was raised, held, shifted, slowed or its gripper closed,
-# beside ordinary and recovery episodes), averaged with its start, then fine-tuned on a set weighted to perturbed
-# episodes and averaged again, then on the expert's way back from the states its own steered stop leaves (DAgger) and
-# averaged once more, then a second DAgger round on the stops of both pausing constraints, averaged the same way, then
-# DAgger on the perturbations (the policy's own states after the arm was raised, closed, turned, slowed or shifted, and
-# its own pausing stops), averaged again, then a second such round on that average's own perturbed states (raised,
-# closed, slowed, shifted), averaged again: each fine-tune alone loses tasks the checkpoint before solved, the average
-# keeps them and most of the way back it learned (docs/models.md). The robust3 perturbed set is also what the shipped
-# probes are fitted on.
+# noise-injected, 20 perturbed a task) and averaged with its start, then DAgger on its own perturbed states (that set
+# beside its rollouts taken over by raise, close, slow and shift, replayed and handed to the expert), averaged again.
+# The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way back after the arm was
+# raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes), averaged with its start,
+# then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the expert's way back from the
+# states its own steered stop leaves (DAgger) and averaged once more, then a second DAgger round on the stops of both
+# pausing constraints, averaged the same way, then DAgger on the perturbations (the policy's own states after the arm
+# was raised, closed, turned, slowed or shifted, and its own pausing stops), averaged again, then a second such round on
+# that average's own perturbed states (raised, closed, slowed, shifted), averaged again: each fine-tune alone loses
+# tasks the checkpoint before solved, the average keeps them and most of the way back it learned (docs/models.md). The
+# robust3 perturbed set is also what the shipped probes are fitted on.
 # Every step resumes where it stopped when re-run.
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
-STAGES_autoregressive ?= continued noisyrobust+soup
+STAGES_autoregressive ?= continued noisyrobust+soup dagger+soup
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
 TUNE_autoregressive_noisyrobust ?= dataset=data/demos/libero_spatial_noisy_robust steps=4000 lr=1e-4 warmup_steps=200
+TUNE_autoregressive_dagger ?= dataset=data/demos/libero_spatial_noisy_dagger steps=4000 lr=1e-4 warmup_steps=200
 STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup dagger7+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
@@ -123,6 +125,15 @@ define PREPARE_hybrid_dagger6
 	$(call extended_demos,data/demos/libero_spatial_dagger6,episodes_per_task=10 recovery_episodes_per_task=5 \
 	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 replay_from=[$(dagger6_replays)],\
 	  data/demos/libero_spatial_robust3)
+endef
+# The autoregressive model's DAgger on the perturbations: its perturb_runs of PERTURB_REPLAYED_autoregressive, each
+# replayed and handed to the expert, 5 a task from each beside the noisy_robust set's episodes. About 45 min.
+PERTURB_REPLAYED_autoregressive ?= raise close slow shift
+define PREPARE_autoregressive_dagger
+	$(call perturb_runs,$(PERTURB_REPLAYED_autoregressive))
+	$(call extended_demos,data/demos/libero_spatial_noisy_dagger,episodes_per_task=10 noisy_episodes_per_task=10 \
+	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 \
+	  replay_from=[$(call perturb_run_list,$(PERTURB_REPLAYED_autoregressive))],data/demos/libero_spatial_noisy_robust)
 endef
 # A second round on the perturbations the dagger6 checkpoint still came back from least often (PERTURB_REPLAYED_AGAIN):
 # its perturb_runs replayed beside dagger6's, 5 a task from each (docs/models.md, "A second DAgger round"). About 30 min.
