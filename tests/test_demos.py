@@ -70,18 +70,19 @@ def test_dataset_has_documented_frames(demo_run):
 RAISED_STEPS = 8
 
 
-def _rollout_run(folder, episodes: int, actions: np.ndarray):
+def _rollout_run(folder, episodes: int, actions: np.ndarray, first: int = 0):
     """A finished `vlactl rollout` run's two tables, as much of them as replaying reads: task 0's `episodes`
-    episodes, each having executed `actions`."""
+    episodes numbered from `first` (as `first_episode=` numbers them), each having executed `actions`."""
     import pandas as pd
 
     from vlactl.env.features import ACTION_FEATURES
 
     folder.mkdir(parents=True)
-    pd.DataFrame({"suite": "libero_spatial", "task_id": 0, "episode": range(episodes), "init_state": range(episodes),
-                  "seed": range(episodes), "start_gripper": "open"}).to_parquet(folder / "episodes.parquet")
+    numbers = range(first, first + episodes)
+    pd.DataFrame({"suite": "libero_spatial", "task_id": 0, "episode": numbers, "init_state": numbers,
+                  "seed": numbers, "start_gripper": "open"}).to_parquet(folder / "episodes.parquet")
     steps = [pd.DataFrame(actions, columns=list(ACTION_FEATURES)).assign(task_id=0, episode=k, t=range(len(actions)))
-             for k in range(episodes)]
+             for k in numbers]
     pd.concat(steps).to_parquet(folder / "steps.parquet")
     return folder
 
@@ -172,7 +173,7 @@ def test_replays_are_refused_with_a_one_line_reason(tmp_path):
         load_replays([str(tmp_path)], "libero_spatial", [0], 10, 1)
     run = _rollout_run(tmp_path / "run", 12, np.zeros((3, 7)))
     assert len(load_replays([str(run)], "libero_spatial", [0], 10, 2)) == 2
-    with pytest.raises(UsageError, match="has 12 episodes of task 0; .* needs 13"):
+    with pytest.raises(UsageError, match="has 2 episodes of task 0 numbered 10 or later .* needs 3"):
         load_replays([str(run)], "libero_spatial", [0], 10, 3)
     with pytest.raises(UsageError, match="not suite=libero_object"):
         load_replays([str(run)], "libero_object", [0], 10, 1)
@@ -194,6 +195,9 @@ def test_several_runs_are_replayed_each_under_its_own_numbers(tmp_path):
     assert (replays[0, 1].actions[:, 2] == 1).all() and len(replays[0, 1].actions) == 3
     assert (replays[0, REPLAY_STRIDE].actions[:, 2] == -1).all() and len(replays[0, REPLAY_STRIDE].actions) == 5
     assert replays[0, REPLAY_STRIDE + 1].init_state == 11  # replay_first + 1 of b
+    later = _rollout_run(tmp_path / "later", 5, up, first=15)  # a run started at first_episode=15: its own 15, 16
+    assert [replay.init_state for replay in load_replays([str(later)], "libero_spatial", [0], 10, 2).values()] \
+        == [15, 16]
 
 
 def test_staging_refuses_episodes_from_other_code(tmp_path):

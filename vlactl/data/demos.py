@@ -170,8 +170,8 @@ def replay_runs(replay_from) -> list[str]:
 
 
 def load_replays(runs: list[str], suite: str, tasks: list[int], first: int, count: int) -> dict:
-    """(task, k) -> Replay of episode `first + j` of that task in the r-th run, k = r * REPLAY_STRIDE + j: finished
-    `vlactl rollout` runs' episodes (usually cut at their window, `max_steps=15`), each replayed from the same initial
+    """(task, k) -> Replay of the j-th episode numbered `first` or later of that task in the r-th run,
+    k = r * REPLAY_STRIDE + j: finished `vlactl rollout` runs' episodes (usually cut at their window, `max_steps=15`), each replayed from the same initial
     state, seed and gripper, so that the expert records its way back from exactly the states that run's policy and
     steering reached (DAgger-style); `count` from each run. `first` skips the episodes whose initial states an
     evaluation starts from (a 10 x 10 run: 0-9)."""
@@ -190,7 +190,8 @@ def load_replays(runs: list[str], suite: str, tasks: list[int], first: int, coun
 
 
 def _run_replays(run: str, suite: str, tasks: list[int], first: int, count: int) -> dict:
-    """(task, j) -> Replay of the run's episode `first + j` of that task."""
+    """(task, j) -> Replay of the run's j-th episode of that task numbered `first` or later (a run started at
+    `first_episode=15` gives its episodes 15.. for replay_first=10)."""
     folder = resolve_path(run)
     if not (folder / "episodes.parquet").exists():
         raise UsageError(f"replay_from={run}: no episodes.parquet there; give a finished `vlactl rollout` run folder")
@@ -204,12 +205,12 @@ def _run_replays(run: str, suite: str, tasks: list[int], first: int, count: int)
 
     replays = {}
     for t in tasks:
-        for k in range(count):
-            key = (t, first + k)
-            if key not in episodes.index:
-                have = int((episodes.index.get_level_values(0) == t).sum())
-                raise UsageError(f"replay_from={run} has {have} episodes of task {t}; replay_first={first} + "
-                                 f"replayed_episodes_per_task={count} needs {first + count}")
+        numbers = sorted(e for task, e in episodes.index if task == t and e >= first)
+        if len(numbers) < count:
+            raise UsageError(f"replay_from={run} has {len(numbers)} episodes of task {t} numbered {first} or later "
+                             f"(replay_first); replayed_episodes_per_task={count} needs {count}")
+        for k, number in enumerate(numbers[:count]):
+            key = (t, number)
             row = episodes.loc[key]
             actions = steps.get_group(key).sort_values("t")[list(ACTION_FEATURES)].to_numpy(np.float64)
             replays[t, k] = Replay(int(row["init_state"]), int(row["seed"]), str(row["start_gripper"]), actions)
