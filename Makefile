@@ -46,7 +46,8 @@ demo: install
 # The autoregressive model learns from the 50 ordinary episodes per task plus 30 noise-injected (DART) ones, trains a
 # second cosine cycle, then is fine-tuned on a perturbation-weighted set that keeps the DART noise (10 ordinary, 10
 # noise-injected, 20 perturbed a task) and averaged with its start, then DAgger on its own perturbed states (that set
-# beside its rollouts taken over by raise, close, slow and shift, replayed and handed to the expert), averaged again.
+# beside its rollouts taken over by raise, close, slow and shift, replayed and handed to the expert), averaged again,
+# then a second such round on that average's own states after a raise and a closed gripper, averaged once more.
 # The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way back after the arm was
 # raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes), averaged with its start,
 # then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the expert's way back from the
@@ -60,10 +61,11 @@ demo: install
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
-STAGES_autoregressive ?= continued noisyrobust+soup dagger+soup
+STAGES_autoregressive ?= continued noisyrobust+soup dagger+soup dagger2+soup
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
 TUNE_autoregressive_noisyrobust ?= dataset=data/demos/libero_spatial_noisy_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_autoregressive_dagger ?= dataset=data/demos/libero_spatial_noisy_dagger steps=4000 lr=1e-4 warmup_steps=200
+TUNE_autoregressive_dagger2 ?= dataset=data/demos/libero_spatial_noisy_dagger2 steps=4000 lr=1e-4 warmup_steps=200
 STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup dagger7+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
@@ -107,13 +109,14 @@ define PREPARE_hybrid_dagger4
 	  data/demos/libero_spatial_robust3)
 endef
 # The checkpoint so far taken over for its first 15 steps by each of the given perturbation kinds, 5 rollouts a task
-# (init states 10-14) cut at step 40: the runs a perturbation DAgger round replays, in $(current)/perturb-<kind>.
+# (init states 10-14, or from the first episode given second) cut at step 40: the runs a perturbation DAgger round
+# replays, in $(current)/perturb-<kind>[-<first episode>].
 define perturb_runs
-	$(foreach k,$(1),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=10 \
-	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)
+	$(foreach k,$(1),$(BIN)/vlactl rollout model=$(current)/checkpoint perturb=$(k) first_episode=$(or $(2),10) \
+	  episodes_per_task=5 max_steps=40 workers=2 output_root=$(current) run_name=perturb-$(k)$(if $(2),-$(2))
 	)
 endef
-perturb_run_list = $(call join_commas,$(foreach k,$(1),$(current)/perturb-$(k)))
+perturb_run_list = $(call join_commas,$(foreach k,$(1),$(current)/perturb-$(k)$(if $(2),-$(2))))
 # DAgger on the perturbations (docs/models.md): perturb_runs of the kinds it came back from least often
 # (PERTURB_REPLAYED) and its own pausing stops, each replayed and handed to the expert, 5 a task from each beside
 # robust3's episodes. About 110 min on 2 cores. dagger6_replays keeps the list for the next round.
@@ -131,9 +134,21 @@ endef
 PERTURB_REPLAYED_autoregressive ?= raise close slow shift
 define PREPARE_autoregressive_dagger
 	$(call perturb_runs,$(PERTURB_REPLAYED_autoregressive))
-	$(call extended_demos,data/demos/libero_spatial_noisy_dagger,episodes_per_task=10 noisy_episodes_per_task=10 \
-	  perturbed_episodes_per_task=20 replayed_episodes_per_task=5 \
-	  replay_from=[$(call perturb_run_list,$(PERTURB_REPLAYED_autoregressive))],data/demos/libero_spatial_noisy_robust)
+	$(eval ar_dagger_replays := $(call perturb_run_list,$(PERTURB_REPLAYED_autoregressive)))
+	$(call extended_demos,data/demos/libero_spatial_noisy_dagger,$(noisy_dagger_set) replay_from=[$(ar_dagger_replays)],\
+	  data/demos/libero_spatial_noisy_robust)
+endef
+noisy_dagger_set = episodes_per_task=10 noisy_episodes_per_task=10 perturbed_episodes_per_task=20 \
+  replayed_episodes_per_task=5
+# A second round on that average's own states after a raise (init states 15-19) and a closed gripper (15-19 and
+# 20-24), replayed beside the first round's runs (docs/models.md). About 35 min.
+define PREPARE_autoregressive_dagger2
+	$(call perturb_runs,raise close,15)
+	$(call perturb_runs,close,20)
+	$(eval ar_dagger2_replays := $(ar_dagger_replays)$(comma)$(call perturb_run_list,raise close,15))
+	$(eval ar_dagger2_replays := $(ar_dagger2_replays)$(comma)$(call perturb_run_list,close,20))
+	$(call extended_demos,data/demos/libero_spatial_noisy_dagger2,$(noisy_dagger_set) replay_from=[$(ar_dagger2_replays)],\
+	  data/demos/libero_spatial_noisy_dagger)
 endef
 # A second round on the perturbations the dagger6 checkpoint still came back from least often (PERTURB_REPLAYED_AGAIN):
 # its perturb_runs replayed beside dagger6's, 5 a task from each (docs/models.md, "A second DAgger round"). About 30 min.
