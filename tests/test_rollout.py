@@ -40,6 +40,9 @@ def test_tables_and_summary(rollout):
     steps = pd.read_parquet(out / "steps.parquet")
     assert list(steps.columns) == parts.STEP_COLUMNS and len(steps) == 8
     assert np.allclose(steps["dz"], 0.3) and (steps["z"].diff()[steps["t"] > 0] > 0).all()  # it rises, as told
+    bowl = steps.groupby("episode")[parts.OBJECT_COLUMNS]  # task 0 moves a bowl on the table; rising leaves it be
+    assert bowl.count().eq(4).all().all() and (bowl.max() - bowl.min()).max().max() < 1e-3
+    assert steps["object_z"].between(0.85, 0.95).all()
     saved = json.loads((out / "summary.json").read_text())
     assert saved == json.loads(json.dumps(second))
     assert saved["episodes"] == 2 and saved["per_task"]["0"]["successes"] == 0

@@ -81,6 +81,7 @@ def test_steps_table_and_summary():
     steps = parts.steps_frame(3, 7, result)
     assert list(steps.columns) == parts.STEP_COLUMNS and len(steps) == 10
     assert np.allclose(steps["speed"], 0.003 / 0.05)
+    assert steps[parts.OBJECT_COLUMNS].isna().all().all()  # an environment that tracks no object
     episodes = pd.DataFrame({"task_id": [0, 0, 1], "instruction": ["a", "a", "b"], "success": [True, False, True],
                              "steps": [10, 220, 30]})
     summary = summarise(episodes)

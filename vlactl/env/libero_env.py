@@ -66,6 +66,9 @@ class Observation:
     libero_state: np.ndarray  # (8,) eef pos, axis-angle, finger qpos (LIBERO / openpi convention)
     raw: dict  # LIBERO's observation dict without images (object poses etc.)
     images: dict[str, np.ndarray] = field(default_factory=dict)  # "image", "wrist_image": HxWx3 uint8, upright
+    # where the object the task moves is (the first goal predicate's object; NaN when that names no object, e.g. a
+    # drawer region): the step table's object_x/y/z, which show whether an intervention knocked it away
+    object_pos: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
 
 
 class LiberoEnv:
@@ -88,6 +91,8 @@ class LiberoEnv:
                 hard_reset=False,
             )
         self._last_raw: dict = {}
+        first = self.goal[0]
+        self._moved_object = first[1] if len(first) > 1 else None
         self._render_setup_for = None  # the MjrContext the one-time render settings were applied to
 
     @property
@@ -177,11 +182,13 @@ class LiberoEnv:
     def _observe(self, raw: dict, render: bool) -> Observation:
         self._last_raw = raw
         pos, quat, grip = raw["robot0_eef_pos"], raw["robot0_eef_quat"], raw["robot0_gripper_qpos"]
+        moved = raw.get(f"{self._moved_object}_pos")
         return Observation(
             state=features.robot_state(pos, quat, grip),
             libero_state=features.libero_state(pos, quat, grip),
             raw=raw,
             images=self.render() if render else {},
+            object_pos=np.full(3, np.nan) if moved is None else np.asarray(moved, dtype=np.float64),
         )
 
     def _configure_renderer(self) -> None:

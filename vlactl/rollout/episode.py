@@ -23,6 +23,7 @@ class EpisodeResult:
     states: np.ndarray  # (steps + 1, 7) SPEC.md §2 state before each action, and after the last one
     actions: np.ndarray  # (steps, 7) the actions applied, clipped to LIBERO's [-1, 1]
     wall_s: float
+    object_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (steps + 1, 3), as states
     frames: list[dict] = field(default_factory=list)  # camera images per observation, only when kept
 
     @property
@@ -46,7 +47,7 @@ def run_episode(
     start = time.perf_counter()
     obs = env.reset(init_state, seed=seed, render=render, gripper=start_gripper)
     agent.reset(env, obs, noise_seed)
-    states, actions, frames = [obs.state], [], [obs.images] if keep_frames else []
+    states, objects, actions, frames = [obs.state], [obs.object_pos], [], [obs.images] if keep_frames else []
     success = False
     for t in range(max_steps):
         action = np.asarray(agent.act(obs), dtype=np.float64)
@@ -56,6 +57,7 @@ def run_episode(
         obs, success = env.step(action, render=render)
         actions.append(action)
         states.append(obs.state)
+        objects.append(obs.object_pos)
         if keep_frames:
             frames.append(obs.images)
         if success:
@@ -65,5 +67,6 @@ def run_episode(
         states=np.stack(states),
         actions=np.stack(actions) if actions else np.zeros((0, 7)),
         wall_s=time.perf_counter() - start,
+        object_positions=np.stack(objects),
         frames=frames,
     )

@@ -25,7 +25,8 @@ EPISODE_COLUMNS = [
 ]
 # With a constraint, steps also get the columns of vlactl.rollout.constraints.judge_all and of
 # vlactl.rollout.constrained.reading_columns.
-STEP_COLUMNS = [*EPISODE_KEY, "t", *STATE_FEATURES, *ACTION_FEATURES, "speed"]
+OBJECT_COLUMNS = ["object_x", "object_y", "object_z"]  # the object the task moves (Observation.object_pos)
+STEP_COLUMNS = [*EPISODE_KEY, "t", *STATE_FEATURES, *ACTION_FEATURES, "speed", *OBJECT_COLUMNS]
 
 
 def stem(out: Path, task: int, episode: int) -> Path:
@@ -37,11 +38,13 @@ def is_done(out: Path, task: int, episode: int) -> bool:
 
 
 def steps_frame(task: int, episode: int, result) -> pd.DataFrame:
-    """One row per policy step t: the state before action t, action t, and the speed it caused."""
+    """One row per policy step t: the state before action t, action t, the speed it caused, and where the task's
+    object was before action t."""
     n = result.steps
     frame = pd.DataFrame(result.states[:n], columns=list(STATE_FEATURES))
     frame[list(ACTION_FEATURES)] = result.actions
     frame["speed"] = speeds(result.states[:, :3])[:n]
+    frame[OBJECT_COLUMNS] = result.object_positions[:n]
     frame.insert(0, "t", range(n))
     frame.insert(0, "episode", episode)
     frame.insert(0, "task_id", task)
