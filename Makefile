@@ -47,7 +47,8 @@ demo: install
 # second cosine cycle, then is fine-tuned on a perturbation-weighted set that keeps the DART noise (10 ordinary, 10
 # noise-injected, 20 perturbed a task) and averaged with its start, then DAgger on its own perturbed states (that set
 # beside its rollouts taken over by raise, close, slow and shift, replayed and handed to the expert), averaged again,
-# then a second such round on that average's own states after a raise and a closed gripper, averaged once more.
+# then a second such round on that average's own states after a raise and a closed gripper, averaged once more, then a
+# third weighted to the closed gripper, averaged again.
 # The hybrid is fine-tuned on recovery demonstrations, then on perturbed ones (the expert's way back after the arm was
 # raised, held, shifted, slowed or its gripper closed, beside ordinary and recovery episodes), averaged with its start,
 # then fine-tuned on a set weighted to perturbed episodes and averaged again, then on the expert's way back from the
@@ -61,11 +62,12 @@ demo: install
 POLICIES ?= hybrid autoregressive
 DATASET_hybrid ?= data/demos/libero_spatial
 DATASET_autoregressive ?= data/demos/libero_spatial_noisy
-STAGES_autoregressive ?= continued noisyrobust+soup dagger+soup dagger2+soup
+STAGES_autoregressive ?= continued noisyrobust+soup dagger+soup dagger2+soup dagger3+soup
 TUNE_autoregressive_continued ?= dataset=$(DATASET_autoregressive) steps=7000 lr=2e-4 warmup_steps=200
 TUNE_autoregressive_noisyrobust ?= dataset=data/demos/libero_spatial_noisy_robust steps=4000 lr=1e-4 warmup_steps=200
 TUNE_autoregressive_dagger ?= dataset=data/demos/libero_spatial_noisy_dagger steps=4000 lr=1e-4 warmup_steps=200
 TUNE_autoregressive_dagger2 ?= dataset=data/demos/libero_spatial_noisy_dagger2 steps=4000 lr=1e-4 warmup_steps=200
+TUNE_autoregressive_dagger3 ?= dataset=data/demos/libero_spatial_noisy_dagger3 steps=2000 lr=1e-4 warmup_steps=100
 STAGES_hybrid ?= continued robust+soup robust3+soup dagger+soup dagger4+soup dagger6+soup dagger7+soup
 TUNE_hybrid_continued ?= dataset=data/demos/libero_spatial_recovery steps=4000 lr=1e-4 warmup_steps=200
 TUNE_hybrid_robust ?= dataset=data/demos/libero_spatial_robust steps=4000 lr=1e-4 warmup_steps=200
@@ -149,6 +151,18 @@ define PREPARE_autoregressive_dagger2
 	$(eval ar_dagger2_replays := $(ar_dagger2_replays)$(comma)$(call perturb_run_list,close,20))
 	$(call extended_demos,data/demos/libero_spatial_noisy_dagger2,$(noisy_dagger_set) replay_from=[$(ar_dagger2_replays)],\
 	  data/demos/libero_spatial_noisy_dagger)
+endef
+# A third round weighted to the closed gripper: that average's own states after close (init states 25-29 and 30-34) and
+# a raise (20-24), replayed beside the first two rounds' runs; a 2000-step fine-tune, to stay near two hours of
+# training (docs/models.md). About 40 min.
+define PREPARE_autoregressive_dagger3
+	$(call perturb_runs,close,25)
+	$(call perturb_runs,close,30)
+	$(call perturb_runs,raise,20)
+	$(eval ar_dagger3_replays := $(ar_dagger2_replays)$(comma)$(call perturb_run_list,close,25)$(comma)$(call \
+	  perturb_run_list,close,30)$(comma)$(call perturb_run_list,raise,20))
+	$(call extended_demos,data/demos/libero_spatial_noisy_dagger3,$(noisy_dagger_set) replay_from=[$(ar_dagger3_replays)],\
+	  data/demos/libero_spatial_noisy_dagger2)
 endef
 # A second round on the perturbations the dagger6 checkpoint still came back from least often (PERTURB_REPLAYED_AGAIN):
 # its perturb_runs replayed beside dagger6's, 5 a task from each (docs/models.md, "A second DAgger round"). About 30 min.
