@@ -173,8 +173,8 @@ def load_replays(runs: list[str], suite: str, tasks: list[int], first: int, coun
     """(task, k) -> Replay of the j-th episode numbered `first` or later of that task in the r-th run,
     k = r * REPLAY_STRIDE + j: finished `vlactl rollout` runs' episodes (usually cut at their window, `max_steps=15`),
     each replayed from the same initial state, seed and gripper, so that the expert records its way back from exactly
-    the states that run's policy and steering reached (DAgger-style); `count` from each run. `first` skips the episodes whose initial states an
-    evaluation starts from (a 10 x 10 run: 0-9)."""
+    the states that run's policy and steering reached (DAgger-style); `count` from each run. `first` skips the
+    episodes whose initial states an evaluation starts from (a 10 x 10 run: 0-9)."""
     if not count:
         return {}
     if not runs:

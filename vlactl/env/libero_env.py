@@ -182,7 +182,7 @@ class LiberoEnv:
     def _observe(self, raw: dict, render: bool) -> Observation:
         self._last_raw = raw
         pos, quat, grip = raw["robot0_eef_pos"], raw["robot0_eef_quat"], raw["robot0_gripper_qpos"]
-        moved = raw.get(f"{self._moved_object}_pos")
+        moved = raw.get(f"{self._moved_object}_pos") if self._moved_object else None
         return Observation(
             state=features.robot_state(pos, quat, grip),
             libero_state=features.libero_state(pos, quat, grip),

@@ -23,7 +23,7 @@ class EpisodeResult:
     states: np.ndarray  # (steps + 1, 7) SPEC.md §2 state before each action, and after the last one
     actions: np.ndarray  # (steps, 7) the actions applied, clipped to LIBERO's [-1, 1]
     wall_s: float
-    object_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (steps + 1, 3), as states
+    object_positions: np.ndarray  # (steps + 1, 3) the task's object (Observation.object_pos), as states
     frames: list[dict] = field(default_factory=list)  # camera images per observation, only when kept
 
     @property
