@@ -119,6 +119,12 @@ define perturb_runs
 	)
 endef
 perturb_run_list = $(call join_commas,$(foreach k,$(1),$(current)/perturb-$(k)$(if $(2),-$(2))))
+# perturb_runs, and their folders appended to the replay list named $(3): a DAgger round replays its own runs beside
+# every earlier round's.
+define replayed_perturb_runs
+	$(call perturb_runs,$(1),$(2))
+	$(eval $(3) := $($(3))$(comma)$(call perturb_run_list,$(1),$(2)))
+endef
 # DAgger on the perturbations (docs/models.md): perturb_runs of the kinds it came back from least often
 # (PERTURB_REPLAYED) and its own pausing stops, each replayed and handed to the expert, 5 a task from each beside
 # robust3's episodes. About 110 min on 2 cores. dagger6_replays keeps the list for the next round.
@@ -145,10 +151,9 @@ noisy_dagger_set = episodes_per_task=10 noisy_episodes_per_task=10 perturbed_epi
 # A second round on that average's own states after a raise (init states 15-19) and a closed gripper (15-19 and
 # 20-24), replayed beside the first round's runs (docs/models.md). About 35 min.
 define PREPARE_autoregressive_dagger2
-	$(call perturb_runs,raise close,15)
-	$(call perturb_runs,close,20)
-	$(eval ar_dagger2_replays := $(ar_dagger_replays)$(comma)$(call perturb_run_list,raise close,15))
-	$(eval ar_dagger2_replays := $(ar_dagger2_replays)$(comma)$(call perturb_run_list,close,20))
+	$(eval ar_dagger2_replays := $(ar_dagger_replays))
+	$(call replayed_perturb_runs,raise close,15,ar_dagger2_replays)
+	$(call replayed_perturb_runs,close,20,ar_dagger2_replays)
 	$(call extended_demos,data/demos/libero_spatial_noisy_dagger2,$(noisy_dagger_set) replay_from=[$(ar_dagger2_replays)],\
 	  data/demos/libero_spatial_noisy_dagger)
 endef
@@ -156,11 +161,10 @@ endef
 # a raise (20-24), replayed beside the first two rounds' runs; a 2000-step fine-tune, to stay near two hours of
 # training (docs/models.md). About 40 min.
 define PREPARE_autoregressive_dagger3
-	$(call perturb_runs,close,25)
-	$(call perturb_runs,close,30)
-	$(call perturb_runs,raise,20)
-	$(eval ar_dagger3_replays := $(ar_dagger2_replays)$(comma)$(call perturb_run_list,close,25)$(comma)$(call \
-	  perturb_run_list,close,30)$(comma)$(call perturb_run_list,raise,20))
+	$(eval ar_dagger3_replays := $(ar_dagger2_replays))
+	$(call replayed_perturb_runs,close,25,ar_dagger3_replays)
+	$(call replayed_perturb_runs,close,30,ar_dagger3_replays)
+	$(call replayed_perturb_runs,raise,20,ar_dagger3_replays)
 	$(call extended_demos,data/demos/libero_spatial_noisy_dagger3,$(noisy_dagger_set) replay_from=[$(ar_dagger3_replays)],\
 	  data/demos/libero_spatial_noisy_dagger2)
 endef
